@@ -1,0 +1,1 @@
+"""The learned AHRS: TCN calibration + differentiable open-loop ECF."""
