@@ -1,0 +1,229 @@
+"""Datasets: loaders for real recordings, splits as configuration, per-recording summaries.
+
+Each real-data module (``broad``, ``euroc``, ``tumvi``, ``oxiod``, ``generic``) exposes
+``list_recordings(root) -> list[str]`` and ``load_recording(root, name) -> ImuSequence``;
+``simulate`` (the embedded default) exposes ``load_split(data_cfg, split)``. Adding a dataset =
+one module with those two functions + one ``conf/data/<name>.yaml``; nothing here changes.
+
+Data configuration (``conf/data/<name>.yaml``, see ``/work/notes/datacfg.md``)::
+
+    name: euroc                       # module name in this package
+    root: ../shared/datasets/euroc    # relative to the working directory (falls back to the repo root)
+    split: train                      # train | val | trainval | test | all
+    train: [MH_01_easy, ...]          # training recordings: first part trains, the rest validates
+    test: [MH_02_easy, ...]           # test recordings (absent ones are skipped with a warning)
+    train_part: {seconds: 80}         # or {fraction: 0.7}
+    axes: 9                           # 6 drops the magnetometer
+"""
+from __future__ import annotations
+
+import importlib
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Optional
+
+import numpy as np
+
+from ..sequence import DataError, ImuSequence, rest_mask
+
+REAL_DATASETS = ("broad", "euroc", "tumvi", "oxiod", "generic")
+DATASETS = REAL_DATASETS + ("simulated",)
+SPLITS = ("train", "val", "trainval", "test", "all")
+_REPO_ROOT = Path(__file__).resolve().parents[2]
+
+__all__ = ["load_split", "list_recordings", "loader", "resolve_root", "split_recording", "summarize",
+           "gt_gaps", "DATASETS", "SPLITS"]
+
+
+def _get(cfg: Mapping, key: str, default: Any = None) -> Any:
+    try:
+        v = cfg.get(key, default)
+    except AttributeError:
+        v = getattr(cfg, key, default)
+    return default if v is None else v
+
+
+def _plain(v: Any) -> Any:
+    """OmegaConf containers -> plain Python (lists, dicts)."""
+    try:
+        from omegaconf import OmegaConf
+
+        if OmegaConf.is_config(v):
+            return OmegaConf.to_container(v, resolve=True)
+    except ImportError:  # pragma: no cover - hydra/omegaconf is a dependency
+        pass
+    return v
+
+
+def loader(name: str):
+    """The module loading dataset ``name`` (imported lazily)."""
+    if name not in REAL_DATASETS:
+        raise DataError("data config", "name", f"unknown dataset {name!r}; expected one of {list(DATASETS)}")
+    return importlib.import_module(f"{__name__}.{name}")
+
+
+def resolve_root(data_cfg: Mapping) -> Path:
+    """``data_cfg.root`` as a folder: relative paths are taken from the working directory, or,
+    when nothing is there, from the repository root (so ``../shared/datasets/x`` works from both)."""
+    root = _get(data_cfg, "root")
+    name = _get(data_cfg, "name", "?")
+    if not root:
+        raise DataError("data config", "root", f"expected the folder holding the {name} recordings")
+    p = Path(str(root)).expanduser()
+    if not p.is_absolute() and not p.exists() and (_REPO_ROOT / p).exists():
+        p = _REPO_ROOT / p
+    if not p.is_dir():
+        raise DataError(str(p), "root", f"expected a folder with the {name} recordings, found nothing there "
+                                        "(see data/README.md for where to get them; set data.root=...)")
+    return p
+
+
+def list_recordings(data_cfg: Mapping) -> List[str]:
+    """Every recording found under ``data_cfg.root`` (for ``simulated``: its recording names)."""
+    name = _get(data_cfg, "name")
+    if name == "simulated":
+        return [s.name for s in load_split(data_cfg, "all")]
+    return loader(name).list_recordings(resolve_root(data_cfg))
+
+
+def split_recording(seq: ImuSequence, train_part: Mapping) -> tuple:
+    """(train part, validation part) of one training recording.
+
+    ``train_part`` is ``{fraction: f}`` (first ``round(f*N)`` samples train; BROAD: 0.7) or
+    ``{seconds: s}`` (samples with ``time - time[0] < s`` train; EuRoC/TUM VI/OxIOD: 80).
+    Either part is ``None`` when it would hold fewer than 2 samples.
+    """
+    tp = _plain(train_part) or {}
+    n = len(seq)
+    if "fraction" in tp and tp["fraction"] is not None:
+        cut = int(round(float(tp["fraction"]) * n))
+    elif "seconds" in tp and tp["seconds"] is not None:
+        cut = int(np.searchsorted(seq.time - seq.time[0], float(tp["seconds"]), side="left"))
+    else:
+        raise DataError("data config", "train_part", f"expected {{fraction: f}} or {{seconds: s}}, got {tp!r}")
+    parts = []
+    for lo, hi, part in ((0, cut, "train"), (cut, n, "val")):
+        if hi - lo < 2:
+            parts.append(None)
+            continue
+        s = seq.slice(lo, hi)
+        s.meta.update(part=part, recording=seq.name, part_start_s=float(seq.time[lo] - seq.time[0]))
+        parts.append(s)
+    return tuple(parts)
+
+
+def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequence]:
+    """The recordings of one split, as :class:`ImuSequence` objects (see the module docstring).
+
+    split (default ``data_cfg.split``, else ``train``): ``train`` = the training parts of the
+    training recordings, ``val`` = their remaining parts, ``trainval`` = the full training
+    recordings, ``test`` = the test recordings present under root (absent ones are skipped with
+    a warning naming them), ``all`` = every recording found under root, full length.
+    ``axes: 6`` drops the magnetometer.
+    """
+    name = _get(data_cfg, "name")
+    split = split or _get(data_cfg, "split", "train")
+    if split not in SPLITS:
+        raise DataError("data config", "split", f"expected one of {list(SPLITS)}, got {split!r}")
+    if name == "simulated":
+        from . import simulate  # written separately; imported lazily
+
+        return simulate.load_split(data_cfg, split)
+    mod = loader(name)
+    root = resolve_root(data_cfg)
+    available = mod.list_recordings(root)
+    if split == "all":
+        names = available
+    else:
+        key = "test" if split == "test" else "train"
+        names = list(_plain(_get(data_cfg, key, [])) or [])
+        missing = [r for r in names if r not in available]
+        if missing:
+            warnings.warn(f"{name}: {key} recordings absent under {root}, skipped: {', '.join(missing)}",
+                          stacklevel=2)
+        names = [r for r in names if r in available]
+    seqs: List[ImuSequence] = []
+    for rec in names:
+        seq = mod.load_recording(root, rec)
+        seq.meta.setdefault("recording", rec)
+        if split in ("train", "val"):
+            train, val = split_recording(seq, _get(data_cfg, "train_part", {}))
+            seq = train if split == "train" else val
+            if seq is None:
+                warnings.warn(f"{name}: recording {rec} has no {split} part (too short)", stacklevel=2)
+                continue
+        seqs.append(seq)
+    if int(_get(data_cfg, "axes", 9)) == 6:
+        seqs = [s.without_mag() if s.has_mag else s for s in seqs]
+    return seqs
+
+
+# --------------------------------------------------------------------------------- summary
+def gt_gaps(seq: ImuSequence, min_gap_s: float = 0.05) -> List[tuple]:
+    """Ground-truth gaps longer than ``min_gap_s``: list of ``(start_time, length_s)``.
+
+    A gap is a run of samples without valid ground truth; its length is the time from the last
+    valid sample before it to the first valid one after it (or the recording's edge).
+    """
+    if seq.quat_valid is None:
+        return [(float(seq.time[0]), seq.duration)] if seq.duration > min_gap_s else []
+    invalid = ~seq.quat_valid
+    n = len(seq)
+    edges = np.diff(np.concatenate([[0], invalid.astype(np.int8), [0]]))
+    starts, stops = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    out = []
+    for a, b in zip(starts, stops):
+        t_before = seq.time[a - 1] if a > 0 else seq.time[0]
+        t_after = seq.time[b] if b < n else seq.time[-1]
+        length = float(t_after - t_before)
+        if length > min_gap_s:
+            out.append((float(seq.time[a]), length))
+    return out
+
+
+def summarize(seq: ImuSequence, min_gap_s: float = 0.05) -> Dict[str, Any]:
+    """Per-recording facts worth checking before training or evaluating on it.
+
+    Keys: name, samples, duration_s, rate_hz, axes, gt_valid_pct, gaps (number of ground-truth
+    gaps > ``min_gap_s``), gaps_total_s, gt_missing_at_start (bool), gt_start_s (time of the first
+    valid ground truth after the start), scored_pct (valid and in score_mask), rest_s (time at
+    rest per :func:`~tcn_ahrs.sequence.rest_mask`), rest_gyro_mean_dps (3 floats, mean gyro at
+    rest in deg/s, i.e. the uncalibrated bias; NaN without rest).
+    """
+    valid = seq.quat_valid if seq.quat_valid is not None else np.zeros(len(seq), dtype=bool)
+    gaps = gt_gaps(seq, min_gap_s)
+    rest = rest_mask(seq)
+    rest_mean = np.degrees(seq.gyro[rest].mean(axis=0)) if rest.any() else np.full(3, np.nan)
+    first = int(np.argmax(valid)) if valid.any() else len(seq) - 1
+    return {
+        "name": seq.name,
+        "samples": len(seq),
+        "duration_s": seq.duration,
+        "rate_hz": float(seq.rate),
+        "axes": seq.num_axes,
+        "gt_valid_pct": 100.0 * float(valid.mean()),
+        "gaps": len(gaps),
+        "gaps_total_s": float(sum(g[1] for g in gaps)),
+        "gt_missing_at_start": bool(not valid[0]),
+        "gt_start_s": float(seq.time[first] - seq.time[0]),
+        "scored_pct": 100.0 * float(seq.scored().mean()),
+        "rest_s": float(rest.sum() / seq.rate),
+        "rest_gyro_mean_dps": [float(x) for x in rest_mean],
+    }
+
+
+def format_summary_table(rows: List[Dict[str, Any]]) -> str:
+    """Fixed-width text table of :func:`summarize` rows."""
+    head = (f"{'recording':<46} {'dur[s]':>7} {'rate[Hz]':>8} {'ax':>2} {'GT%':>6} {'gaps>50ms':>9} "
+            f"{'gap[s]':>6} {'GT@start':>9} {'rest[s]':>7}  rest gyro mean [deg/s]")
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        start = "missing" if r["gt_missing_at_start"] else "ok"
+        if r["gt_missing_at_start"]:
+            start += f" {r['gt_start_s']:.1f}s"
+        g = r["rest_gyro_mean_dps"]
+        gs = "n/a" if not np.all(np.isfinite(g)) else "(" + ", ".join(f"{x:+.3f}" for x in g) + ")"
+        lines.append(f"{r['name'][:46]:<46} {r['duration_s']:7.1f} {r['rate_hz']:8.2f} {r['axes']:>2} "
+                     f"{r['gt_valid_pct']:6.2f} {r['gaps']:9d} {r['gaps_total_s']:6.2f} {start:>9} "
+                     f"{r['rest_s']:7.1f}  {gs}")
+    return "\n".join(lines)

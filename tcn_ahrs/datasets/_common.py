@@ -81,7 +81,7 @@ def read_numeric_csv(path: Path, header: bool, ncols: Sequence[int] | None = Non
         if len(cells) != width:
             raise DataError(str(path), f"row {i + 1 + int(header)}",
                             f"expected {width} comma-separated values, found {len(cells)} (truncated file?)")
-        rows.append(cells)
+        rows.append([c.strip() or "nan" for c in cells])  # empty cell = missing value
     try:
         values = np.array(rows, dtype=np.float64)
     except ValueError as e:

@@ -1,0 +1,219 @@
+"""The generic recording format: bring your own IMU data (documented in ``data/README.md``).
+
+CSV: a header row naming the columns (any order, extra columns ignored):
+
+* ``t`` (s, strictly increasing), ``gyr_x, gyr_y, gyr_z`` (rad/s), ``acc_x, acc_y, acc_z``
+  (m/s^2, specific force: +9.81 along the up axis at rest);
+* optional ``mag_x, mag_y, mag_z`` (uT), ``quat_w, quat_x, quat_y, quat_z`` (ground truth
+  ``nav_from_body``, ENU; empty/NaN rows = no ground truth there), ``score`` (0/1: samples to
+  score).
+
+HDF5: datasets ``t`` (N,), ``gyr`` (N,3), ``acc`` (N,3), optional ``mag`` (N,3), ``quat`` (N,4),
+``score`` (N,).
+
+Other units and frames are declared, not guessed: HDF5 root attributes, or for CSV a YAML
+sidecar ``<file stem>.yaml`` next to the file, with any of
+
+====================  =====================================  ==========
+key                   values                                 default
+====================  =====================================  ==========
+``gyr_unit``          ``rad/s``, ``deg/s``                   ``rad/s``
+``acc_unit``          ``m/s^2``, ``g``                       ``m/s^2``
+``acc_sign``          ``specific_force``, ``gravity``        ``specific_force``
+``mag_unit``          ``uT``, ``G`` (Gauss), ``nT``          ``uT``
+``quat_order``        ``wxyz``, ``xyzw``                     ``wxyz``
+``nav_frame``         ``ENU``, ``NED``, ``NWU``              ``ENU``
+``rate``              nominal rate in Hz                     from ``t``
+====================  =====================================  ==========
+
+converted here with :mod:`tcn_ahrs.conventions`. Undeclared deg/s or g data is rejected by
+:class:`~tcn_ahrs.sequence.ImuSequence`'s plausibility checks.
+
+``list_recordings(root)`` returns every ``*.csv``/``*.h5``/``*.hdf5`` under ``root``
+(recursively) as its path relative to ``root`` without the suffix (e.g. ``walk/run1``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict, List, Optional
+
+import numpy as np
+
+from .. import conventions as conv
+from ..sequence import DataError, ImuSequence
+from ._common import check_finite, check_increasing, matrix_to_quat, quat_to_matrix, read_numeric_csv
+
+SUFFIXES = (".csv", ".h5", ".hdf5")
+AXES = ("x", "y", "z")
+ATTR_KEYS = ("gyr_unit", "acc_unit", "acc_sign", "mag_unit", "quat_order", "nav_frame", "rate")
+
+
+def list_recordings(root) -> List[str]:
+    """Every ``*.csv``/``*.h5``/``*.hdf5`` under ``root``, as relative paths without suffix, sorted."""
+    root = Path(root)
+    return sorted({p.relative_to(root).with_suffix("").as_posix()
+                   for p in root.rglob("*") if p.suffix.lower() in SUFFIXES and p.is_file()})
+
+
+def load_recording(root, name: str) -> ImuSequence:
+    """Load recording ``name`` (relative path, with or without suffix) from ``root``."""
+    root = Path(root)
+    direct = root / name
+    if direct.suffix.lower() in SUFFIXES and direct.is_file():
+        return load_file(direct, name=Path(name).with_suffix("").as_posix())
+    for suf in SUFFIXES:
+        p = root / f"{name}{suf}"
+        if p.is_file():
+            return load_file(p, name=name)
+    raise DataError(str(root), "recording", f"expected a file {name}.csv/.h5/.hdf5 under this folder, found none")
+
+
+def load_file(path, name: Optional[str] = None) -> ImuSequence:
+    """Load one generic CSV or HDF5 file (see the module docstring for the format)."""
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        arrays, attrs = _read_csv(path)
+    elif path.suffix.lower() in (".h5", ".hdf5"):
+        arrays, attrs = _read_hdf5(path)
+    else:
+        raise DataError(str(path), "file", f"expected a .csv, .h5 or .hdf5 file, got suffix {path.suffix!r}")
+    return _build(path, name or path.stem, arrays, attrs)
+
+
+# --------------------------------------------------------------------------------- readers
+def _read_sidecar(path: Path) -> Dict:
+    side = path.with_suffix(".yaml")
+    if not side.is_file():
+        return {}
+    from omegaconf import OmegaConf
+
+    try:
+        cfg = OmegaConf.to_container(OmegaConf.load(side))
+    except Exception as e:  # yaml errors come in many types
+        raise DataError(str(side), "file", f"expected a YAML mapping of unit/frame declarations: {e}") from None
+    if not isinstance(cfg, dict):
+        raise DataError(str(side), "file", "expected a YAML mapping of unit/frame declarations")
+    return cfg
+
+
+def _read_csv(path: Path):
+    names, values, _ = read_numeric_csv(path, header=True)
+    col = {n: i for i, n in enumerate(names)}
+
+    def take(fields, required):
+        present = [f in col for f in fields]
+        if not any(present) and not required:
+            return None
+        for f, ok in zip(fields, present):
+            if not ok:
+                raise DataError(str(path), f, f"expected a column named '{f}'; header has {names}")
+        return values[:, [col[f] for f in fields]]
+
+    arrays = {
+        "t": take(["t"], True)[:, 0],
+        "gyr": take([f"gyr_{a}" for a in AXES], True),
+        "acc": take([f"acc_{a}" for a in AXES], True),
+        "mag": take([f"mag_{a}" for a in AXES], False),
+        "quat": None,
+        "score": None,
+    }
+    attrs = _read_sidecar(path)
+    order = str(attrs.get("quat_order", "wxyz")).lower()
+    if order not in ("wxyz", "xyzw"):
+        raise DataError(str(path), "quat_order", f"expected 'wxyz' or 'xyzw', got {order!r}")
+    arrays["quat"] = take([f"quat_{c}" for c in order], False)
+    if "score" in col:
+        arrays["score"] = values[:, col["score"]]
+    return arrays, attrs
+
+
+def _read_hdf5(path: Path):
+    import h5py
+
+    src = str(path)
+    if not path.is_file():
+        raise DataError(src, "file", "expected an HDF5 file, found nothing there")
+    if path.stat().st_size == 0:
+        raise DataError(src, "file", "expected an HDF5 file, the file is empty")
+    try:
+        fh = h5py.File(path, "r")
+    except OSError as e:
+        raise DataError(src, "file", f"expected a readable HDF5 file (truncated or corrupt?): {e}") from None
+    arrays = {}
+    with fh:
+        for key in ("t", "gyr", "acc"):
+            if key not in fh:
+                raise DataError(src, key, f"expected dataset '{key}' (generic HDF5: t, gyr, acc, [mag], [quat], "
+                                          f"[score]); file has {sorted(fh.keys())}")
+        for key in ("t", "gyr", "acc", "mag", "quat", "score"):
+            if key in fh:
+                try:
+                    arrays[key] = np.asarray(fh[key][()], dtype=np.float64)
+                except (OSError, TypeError, ValueError) as e:
+                    raise DataError(src, key, f"could not read dataset (truncated or corrupt file?): {e}") from None
+            else:
+                arrays[key] = None
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in fh.attrs.items() if k in ATTR_KEYS}
+    order = str(attrs.get("quat_order", "wxyz")).lower()
+    if order not in ("wxyz", "xyzw"):
+        raise DataError(src, "quat_order", f"expected 'wxyz' or 'xyzw', got {order!r}")
+    if arrays["quat"] is not None and order == "xyzw":
+        arrays["quat"] = conv.quat_xyzw_to_wxyz(arrays["quat"])
+    return arrays, attrs
+
+
+# ---------------------------------------------------------------------------- conversions
+def _convert(src: str, key: str, value, table: Dict[str, callable]):
+    unit = str(value)
+    if unit not in table:
+        raise DataError(src, key, f"expected one of {sorted(table)}, got {unit!r}")
+    return table[unit]
+
+
+_GYR = {"rad/s": lambda x: x, "deg/s": conv.deg_to_rad}
+_ACC = {"m/s^2": lambda x: x, "m/s2": lambda x: x, "g": conv.g_to_mps2}
+_ACC_SIGN = {"specific_force": lambda x: x, "gravity": conv.accel_down_to_up}
+_MAG = {"uT": lambda x: x, "G": conv.gauss_to_ut, "Gauss": conv.gauss_to_ut, "nT": conv.nt_to_ut}
+
+
+def _build(path: Path, name: str, a: Dict, attrs: Dict) -> ImuSequence:
+    src = str(path)
+    t = np.asarray(a["t"], dtype=np.float64).reshape(-1)
+    n = t.shape[0]
+    if n < 2:
+        raise DataError(src, "t", f"expected at least 2 samples, got {n}")
+    check_increasing(src, "t", t)
+    for key, width in (("gyr", 3), ("acc", 3), ("mag", 3), ("quat", 4)):
+        if a[key] is not None and (a[key].ndim != 2 or a[key].shape != (n, width)):
+            raise DataError(src, key, f"expected shape ({n}, {width}), got {a[key].shape}")
+    gyro = _convert(src, "gyr_unit", attrs.get("gyr_unit", "rad/s"), _GYR)(check_finite(src, "gyr", a["gyr"]))
+    acc = check_finite(src, "acc", a["acc"])
+    acc = _convert(src, "acc_unit", attrs.get("acc_unit", "m/s^2"), _ACC)(acc)
+    acc = _convert(src, "acc_sign", attrs.get("acc_sign", "specific_force"), _ACC_SIGN)(acc)
+    mag = None
+    if a["mag"] is not None:
+        mag = _convert(src, "mag_unit", attrs.get("mag_unit", "uT"), _MAG)(check_finite(src, "mag", a["mag"]))
+    quat = valid = None
+    if a["quat"] is not None:
+        quat = np.asarray(a["quat"], dtype=np.float64)
+        valid = np.all(np.isfinite(quat), axis=1)
+        frame = str(attrs.get("nav_frame", "ENU")).upper()
+        try:
+            c = conv.enu_from_frame(frame)
+        except ValueError as e:
+            raise DataError(src, "nav_frame", str(e)) from None
+        if frame != "ENU" and valid.any():
+            # nav_from_body in `frame` -> ENU: R_enu = C_enu_from_frame @ R_frame.
+            q = quat.copy()
+            q[valid] = matrix_to_quat(c @ quat_to_matrix(quat[valid] / np.linalg.norm(quat[valid], axis=1, keepdims=True)))
+            quat = q
+    score = None
+    if a["score"] is not None:
+        s = np.asarray(a["score"]).reshape(-1)
+        if s.shape != (n,):
+            raise DataError(src, "score", f"expected shape ({n},), got {s.shape}")
+        score = np.nan_to_num(s, nan=0.0) > 0.5
+    rate = float(attrs.get("rate", 0.0) or 0.0)
+    meta = {"dataset": "generic", "declared": {k: attrs[k] for k in ATTR_KEYS if k in attrs}}
+    return ImuSequence(name=name, source=src, time=t, gyro=gyro, accel=acc, mag=mag, quat=quat,
+                       quat_valid=valid, score_mask=score, rate=rate, meta=meta)

@@ -1,0 +1,123 @@
+"""The learned AHRS: calibration (TCN) + open-loop ECF + integration on SO(3).
+
+One model class; the variants of the paper and its ablations are flags (``conf/model/*.yaml``):
+
+============== ===== ========= ======= ======= ============ =========
+variant        axes  gyro net  acc net mag net acc/mag term ECF
+============== ===== ========= ======= ======= ============ =========
+ahrs9          9     tcn (9in) tcn     tcn     both         yes
+ahrs6          6     tcn (6in) tcn     -       acc          yes
+calib_imu      9/6   constant  const.  const.  both         yes
+dig_like       9/6   tcn       none    none    none         no
+no_mag_term    9     tcn       tcn     tcn     acc          yes
+no_acc_term    9     tcn       tcn     tcn     mag          yes
+no_ecf_terms   9     tcn       tcn     tcn     none         yes
+gyro_only_input 9    tcn (3in) tcn     tcn     both         yes
+============== ===== ========= ======= ======= ============ =========
+
+Data flow (B windows of N samples; body frame; ENU ``nav_from_body``):
+``imu (B,N,C) -> Calibration -> ω̂_gyr, ĝ, b̂ -> OpenLoopECF -> ω̂ (B,N,3) -> so3.integrate``.
+The loss only needs ω̂ (increments, :mod:`tcn_ahrs.losses`); the absolute attitude
+(Eq. 3) is :meth:`LearnedAHRS.attitude`.
+"""
+from __future__ import annotations
+
+from typing import Any, Dict, Mapping, Optional
+
+import torch
+from torch import Tensor, nn
+
+from .. import so3
+from .calibration import Calibration
+from .ecf import OpenLoopECF
+
+# Every key a model config may have (a misspelt key is an error, see from_config).
+MODEL_KEYS = {
+    "variant", "axes", "gyro_net", "acc_net", "mag_net", "gyro_input", "use_acc_term",
+    "use_mag_term", "ecf", "preintegration", "init_gain", "error_scale", "tcn",
+}
+TCN_KEYS = {"channels", "kernel_size", "dilations", "dropout"}
+
+
+class LearnedAHRS(nn.Module):
+    """TCN calibration + differentiable open-loop ECF (paper Sec. 3).
+
+    Args: see :data:`MODEL_KEYS`; ``variant`` is only a label saved with checkpoints.
+    """
+
+    def __init__(self, axes: int = 9, variant: str = "ahrs9", gyro_net: str = "tcn",
+                 acc_net: str = "tcn", mag_net: str = "tcn", gyro_input: str = "all",
+                 use_acc_term: bool = True, use_mag_term: bool = True, ecf: bool = True,
+                 preintegration: str = "raw", init_gain: float = 0.05,
+                 error_scale: Optional[Mapping[str, float]] = None, tcn: Optional[Mapping] = None):
+        super().__init__()
+        self.axes = int(axes)
+        self.variant = str(variant)
+        self.calibration = Calibration(self.axes, gyro_net, acc_net, mag_net, gyro_input,
+                                       dict(error_scale or {}), dict(tcn or {}))
+        self.ecf = None
+        if ecf:
+            self.ecf = OpenLoopECF(use_acc=use_acc_term, use_mag=use_mag_term and self.axes == 9,
+                                   init_gain=init_gain, preintegration=preintegration)
+
+    @classmethod
+    def from_config(cls, cfg: Mapping[str, Any], axes: Optional[int] = None) -> "LearnedAHRS":
+        """Build from a (possibly OmegaConf) mapping; unknown keys raise ``ValueError``.
+        ``axes`` (from the data) overrides ``cfg['axes']`` when ``cfg['axes']`` is None."""
+        cfg = dict(cfg)
+        unknown = set(cfg) - MODEL_KEYS
+        if unknown:
+            raise ValueError(f"model config: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(MODEL_KEYS)}")
+        tcn = dict(cfg.get("tcn") or {})
+        bad = set(tcn) - TCN_KEYS
+        if bad:
+            raise ValueError(f"model.tcn config: unknown key(s) {sorted(bad)}; expected a subset of {sorted(TCN_KEYS)}")
+        for k in ("channels", "dilations"):
+            if k in tcn:
+                tcn[k] = list(tcn[k])
+        cfg["tcn"] = tcn
+        if cfg.get("error_scale") is not None:
+            cfg["error_scale"] = dict(cfg["error_scale"])
+        if cfg.get("axes") is None:
+            if axes is None:
+                raise ValueError("model config: 'axes' is unset and no data axes were given")
+            cfg["axes"] = axes
+        return cls(**cfg)
+
+    @property
+    def receptive_field(self) -> int:
+        return self.calibration.receptive_field
+
+    def num_parameters(self) -> int:
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+    def forward(self, imu: Tensor, dt: Tensor, r0: Tensor) -> Dict[str, Tensor]:
+        """Corrected angular rate and intermediate signals.
+
+        Args:
+            imu: (B, N, C) raw gyro [rad/s], acc [m/s^2] (, mag [uT]), body frame.
+            dt:  (B, N) time step before each sample, s.
+            r0:  (B, 3, 3) ``nav_from_body`` at sample 0 (ground truth), needed by the ECF's
+                 pre-integration (Eq. 25).
+        Returns dict (B, N, 3): ``omega`` ω̂ (Eq. 22), ``gyro`` ω̂_gyr, ``gyro_error`` ω̃,
+        ``acc_error`` ã, ``mag_error`` m̃ (9-axis), ``e_acc``/``e_mag`` when used.
+        """
+        cal = self.calibration(imu)
+        out = dict(cal)
+        if self.ecf is None:
+            out["omega"] = cal["gyro"]
+            return out
+        omega, e_acc, e_mag = self.ecf(cal["gyro"], cal["acc"], cal.get("mag"), imu[..., 0:3],
+                                       imu[..., 3:6], r0.to(imu.dtype), dt)
+        out["omega"] = omega
+        if e_acc is not None:
+            out["e_acc"] = e_acc
+        if e_mag is not None:
+            out["e_mag"] = e_mag
+        return out
+
+    @staticmethod
+    def attitude(omega: Tensor, dt: Tensor, r0: Tensor) -> Tensor:
+        """Eq. 3: ``C_k = C_0 ∏ exp(ω̂ Δt)`` -> (B, N, 3, 3) (computed in r0's dtype; pass a
+        float64 r0 for long sequences)."""
+        return so3.integrate(r0, omega.to(r0.dtype), dt.to(r0.dtype))
