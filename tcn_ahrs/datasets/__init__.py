@@ -82,7 +82,11 @@ def list_recordings(data_cfg: Mapping) -> List[str]:
     """Every recording found under ``data_cfg.root`` (for ``simulated``: its recording names)."""
     name = _get(data_cfg, "name")
     if name == "simulated":
-        return [s.name for s in load_split(data_cfg, "all")]
+        from . import simulate  # written separately; imported lazily
+
+        if hasattr(simulate, "list_recordings"):
+            return list(simulate.list_recordings(data_cfg))
+        return [s.name for s in simulate.load_split(data_cfg, "all")]
     return loader(name).list_recordings(resolve_root(data_cfg))
 
 

@@ -7,7 +7,7 @@ file calls it* (``imu_gyr``, ``w_RS_S_x``, ``gyr_x``) and what was expected.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Dict, List, Sequence, Tuple
+from typing import List, Sequence, Tuple
 
 import numpy as np
 import torch

@@ -38,9 +38,13 @@ def _find(root: Path, name: str) -> Path:
 
 
 def read_trials(root) -> Dict[str, dict]:
-    """``trials.json`` -> {trial name: {"description", "groups"}} ({} when absent)."""
-    p = Path(root) / "trials.json"
-    if not p.is_file():
+    """``trials.json`` -> {trial name: {"description", "groups"}} ({} when absent).
+
+    Looked up in ``root`` and, for the published layout (``broad/data_hdf5/*.hdf5`` with
+    ``broad/trials.json``), in its parent folder."""
+    candidates = [Path(root) / "trials.json", Path(root).parent / "trials.json"]
+    p = next((c for c in candidates if c.is_file()), None)
+    if p is None:
         return {}
     try:
         return dict(json.loads(p.read_text()).get("trials", {}))

@@ -89,8 +89,10 @@ def load_asl(seq_dir, gt_dir: str, name: str, dataset: str, max_nearest_s: float
     imu = read_asl_csv(imu_path, ("timestamp",) + GYRO_COLS + ACC_COLS)
     t_imu_ns = imu["timestamp"]
     check_increasing(imu_path, "timestamp", t_imu_ns.astype(np.float64))
-    gyro = check_finite(imu_path, "w_RS_S", np.stack([imu[c] for c in GYRO_COLS], axis=1))
-    accel = check_finite(imu_path, "a_RS_S", np.stack([imu[c] for c in ACC_COLS], axis=1))
+    for c in GYRO_COLS + ACC_COLS:
+        check_finite(imu_path, c, imu[c])
+    gyro = np.stack([imu[c] for c in GYRO_COLS], axis=1)
+    accel = np.stack([imu[c] for c in ACC_COLS], axis=1)
 
     if not gt_path.is_file():
         raise DataError(str(gt_path), "file", f"expected the ground-truth file of sequence '{name}', found nothing there")
