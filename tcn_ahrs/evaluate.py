@@ -193,6 +193,17 @@ def evaluate(
     return results
 
 
+def load_results(path) -> dict:
+    """Read a ``results.json`` (a file or the ``out_dir`` holding it) back into the results dict."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "results.json"
+    try:
+        return json.loads(p.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{p}: no results.json (expected the output of tcn_ahrs.evaluate.evaluate)") from None
+
+
 # ---------------------------------------------------------------------------
 # tables
 # ---------------------------------------------------------------------------
