@@ -1,0 +1,593 @@
+"""Published attitude estimators from PyPI ("peers"), run under the project's Estimator interface.
+
+Each wrapper feeds an :class:`~tcn_ahrs.sequence.ImuSequence` (rad/s, m/s^2 specific force
+pointing up at rest, uT, ENU) to one library in that library's own conventions and converts
+its output back to ``nav_from_body`` quaternions (w,x,y,z) in ENU, so that one benchmark
+command scores every estimator on the same recordings with the same metric code.
+
+The peers are an optional extra (``pip install -e .[peers]``): importing this module never
+imports them; a wrapper imports its library when it is built and raises
+:class:`PeerUnavailable` (an ``ImportError``) naming the install command when it is missing.
+
+Conventions of each library, as found in the installed sources and checked by
+``tests/test_peers.py`` on synthetic recordings with known attitude:
+
+============  =========================================================================
+vqf 2.1       Causal ``VQF(gyrTs).updateBatch(gyr, acc, mag)`` (``offlineVQF`` is the
+              non-causal forward-backward variant, not used by default). Inputs rad/s,
+              m/s^2 (specific force, up), any field unit; arrays must be C-contiguous
+              float64 (the wrapper makes them so). Output ``quat6D``/``quat9D`` w,x,y,z
+              ``nav_from_body``; 9D reference frame is ENU (z up; the magnetometer
+              heading update uses ``atan2(m_x, m_y)``, i.e. magnetic north is +y). The 6D
+              frame is z up with arbitrary heading. The initial attitude cannot be set.
+imufusion     x-io Fusion (>= 1.3 API). Inputs deg/s and g (specific force), any field unit.
+1.3           ``AhrsSettings(...)`` IGNORES its ``convention`` argument (it stays NWU);
+              the wrapper sets ``settings.convention = CONVENTION_ENU`` through the
+              property setter. Output ``get_quaternion()`` w,x,y,z ``nav_from_body``
+              in the chosen convention. Per-sample period via ``set_sample_period(dt)``.
+ahrs 0.4      ``Madgwick``: NWU (x magnetic north, z up), specific force (up).
+              ``Mahony``: ENU (its magnetic reference is ``[0, b_h, b_z]``), specific
+              force (up). ``EKF``: ``frame='NED'`` by default, and in BOTH its frames the
+              accelerometer reference ``a_ref`` is the DOWN direction, i.e. it expects
+              the gravity vector (-specific force): the wrapper negates the accelerometer.
+              The EKF normalises the magnetometer and compares it with the unit vector
+              ``magnetic_ref`` (default: the WMM field of Munich); the wrapper passes the
+              local dip angle measured at the first sample instead. All three return
+              ``nav_from_body`` w,x,y,z; all skip the whole update when the gyro reads
+              exactly zero (never happens on real data).
+riann 0.2     ``RIANN(onnx_path)``: 0.2.0 looks its model up with
+              ``importlib.resources.path("riann.riann", ...)`` which fails (a module, not
+              a package) and falls back to paths relative to the working directory, so the
+              wrapper passes ``Path(riann.__file__).parent / "riann.onnx"``. Batch API
+              ``predict(acc, gyr, fs)`` (one ONNX call over the whole sequence; the GRU is
+              causal), streaming API ``set_sampling_rate(fs)`` + ``predict_step(acc, gyr)``
+              (one ONNX call per sample; ``reset_state()`` between recordings) -- use the
+              latter for latency/speed benchmarks. Inputs m/s^2 (specific force), rad/s.
+              Output w,x,y,z ``nav_from_body`` with z up and arbitrary, drifting heading.
+============  =========================================================================
+
+Scoring heading-free estimators: RIANN has no heading reference and does not integrate a
+meaningful one, so its wrapper has ``heading_free = True``. The benchmark then scores it
+on inclination only: BROAD's ``inclination_deg`` (:func:`tcn_ahrs.metrics.broad_errors`)
+and the inclination error of the aligned estimate; AYE and heading are reported as NaN.
+6-axis wrappers (``axes == 6``) are not heading-free: they integrate heading from the
+initial attitude and are scored with the 6D conventions of :mod:`tcn_ahrs.metrics`.
+
+Initial attitude: the ``ahrs`` filters start from ``init_quat`` (else from the first
+accelerometer/magnetometer sample, TRIAD in ENU), imufusion is seeded with it (and skips
+its start-up phase, which would overwrite it), VQF and RIANN initialise themselves and
+ignore it.
+"""
+from __future__ import annotations
+
+import importlib
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import numpy as np
+
+from ..conventions import GRAVITY, enu_from_frame, rad_to_deg
+from ..sequence import ImuSequence
+from .base import Estimator, EstimatorOutput
+
+__all__ = [
+    "PeerUnavailable",
+    "VQFEstimator",
+    "ImufusionEstimator",
+    "AhrsMadgwickEstimator",
+    "AhrsMahonyEstimator",
+    "AhrsEKFEstimator",
+    "RIANNEstimator",
+    "PEER_CLASSES",
+    "PEER_GRIDS",
+    "peer_estimators",
+    "make_peer",
+]
+
+INSTALL_HINT = "pip install -e .[peers]"
+
+
+class PeerUnavailable(ImportError):
+    """A peer estimator's library is not installed."""
+
+
+def _import_peer(module: str, package: str, peer: str):
+    try:
+        return importlib.import_module(module)
+    except ImportError as e:
+        raise PeerUnavailable(
+            f"peer estimator '{peer}' needs the package '{package}' (not importable: {e}); "
+            f"install the optional peers with: {INSTALL_HINT}") from e
+
+
+# ---------------------------------------------------------------------------
+# small numpy quaternion helpers (w,x,y,z, Hamilton)
+# ---------------------------------------------------------------------------
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a ⊗ b, broadcasting over leading dimensions."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
+    return np.stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ], axis=-1)
+
+
+def _quat_conj(q: np.ndarray) -> np.ndarray:
+    return np.asarray(q, dtype=np.float64) * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def _matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    """(3,3) rotation matrix -> (4,) quaternion w,x,y,z with w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(m).as_quat()
+    q = np.array([w, x, y, z])
+    return q if w >= 0 else -q
+
+
+def _frame_to_enu_quat(frame: str) -> np.ndarray:
+    """Quaternion of ``enu_from_frame(frame)``: q_enu_from_body = q ⊗ q_frame_from_body."""
+    return _matrix_to_quat(enu_from_frame(frame))
+
+
+def _to_enu(q_frame_from_body: np.ndarray, frame: str) -> np.ndarray:
+    """(N,4) ``frame_from_body`` -> (N,4) ``enu_from_body``, normalised, w >= 0."""
+    q = _quat_mul(_frame_to_enu_quat(frame), np.asarray(q_frame_from_body, dtype=np.float64))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def _from_enu(q_enu_from_body: np.ndarray, frame: str) -> np.ndarray:
+    """(...,4) ``enu_from_body`` -> ``frame_from_body``."""
+    return _quat_mul(_quat_conj(_frame_to_enu_quat(frame)), q_enu_from_body)
+
+
+def triad_quat(accel: np.ndarray, mag: Optional[np.ndarray] = None) -> np.ndarray:
+    """Attitude ``nav_from_body`` (w,x,y,z, ENU) from one accelerometer sample (specific
+    force, up) and optionally one magnetometer sample; without the magnetometer the body
+    x axis is given zero heading (yaw = 0)."""
+    up = np.asarray(accel, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    ref = np.asarray(mag, dtype=np.float64) if mag is not None else None
+    if ref is None:
+        # zero heading: the body x axis (y when x is almost vertical), made horizontal, is east
+        bx = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        east = bx - (bx @ up) * up
+    else:
+        east = np.cross(ref, up)  # field points north (and down): m x up points east
+    east /= np.linalg.norm(east)
+    north = np.cross(up, east)
+    # rows: the ENU axes expressed in the body frame = R_nav_from_body
+    r_nav_from_body = np.stack([east, north, up], axis=0)
+    return _matrix_to_quat(r_nav_from_body)
+
+
+def _dip_deg(accel: np.ndarray, mag: np.ndarray) -> float:
+    """Magnetic dip angle in degrees (positive: field points below the horizon)."""
+    a = accel / np.linalg.norm(accel)
+    m = mag / np.linalg.norm(mag)
+    return float(np.degrees(np.arcsin(np.clip(-a @ m, -1.0, 1.0))))
+
+
+def _check_axes(axes: int) -> int:
+    if int(axes) not in (6, 9):
+        raise ValueError(f"axes: expected 6 or 9, got {axes!r}")
+    return int(axes)
+
+
+def _mag_of(seq: ImuSequence, axes: int, peer: str) -> Optional[np.ndarray]:
+    if axes == 6:
+        return None
+    if seq.mag is None:
+        raise ValueError(f"{seq.source}: field 'mag': peer '{peer}' (9-axis) needs a magnetometer, "
+                         f"recording {seq.name!r} has none; use the 6-axis variant")
+    return seq.mag
+
+
+class _Peer:
+    """Shared bits: name, axes, params, heading_free."""
+
+    base_name = "peer"
+    heading_free = False
+
+    def __init__(self, axes: int, params: Dict[str, Any]):
+        self.axes = _check_axes(axes)
+        self.params = dict(params)
+        self.name = f"{self.base_name}{self.axes}d"
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(axes={self.axes}, {self.params})"
+
+    def _initial(self, seq: ImuSequence, init_quat: Optional[np.ndarray], mag) -> np.ndarray:
+        if init_quat is not None:
+            q = np.asarray(init_quat, dtype=np.float64).reshape(4)
+            return q / np.linalg.norm(q)
+        return triad_quat(seq.accel[0], None if mag is None else mag[0])
+
+
+# ---------------------------------------------------------------------------
+# VQF
+# ---------------------------------------------------------------------------
+
+
+class VQFEstimator(_Peer):
+    """VQF (Laidig & Seel, Information Fusion 2023), ``pip install vqf``.
+
+    Keyword args are VQF's parameters (authors' defaults: ``tauAcc=3.0`` s, ``tauMag=9.0`` s,
+    motion/rest bias estimation and magnetic disturbance rejection enabled); any other
+    ``VQFParams`` field may be given too. ``offline=True`` uses ``offlineVQF`` (non-causal,
+    forward-backward: not comparable with causal filters).
+
+    signals: ``gyro_bias`` (N,3) rad/s, ``rest`` (N,) bool, and for 9D ``mag_disturbed``
+    (N,) bool, ``heading_delta`` (N,) rad.
+    """
+
+    base_name = "vqf"
+
+    def __init__(self, axes: int = 9, tauAcc: float = 3.0, tauMag: float = 9.0,
+                 motionBiasEstEnabled: bool = True, restBiasEstEnabled: bool = True,
+                 magDistRejectionEnabled: bool = True, offline: bool = False, **vqf_params):
+        params = dict(tauAcc=tauAcc, tauMag=tauMag, motionBiasEstEnabled=motionBiasEstEnabled,
+                      restBiasEstEnabled=restBiasEstEnabled,
+                      magDistRejectionEnabled=magDistRejectionEnabled, **vqf_params)
+        super().__init__(axes, params)
+        self.offline = bool(offline)
+        if self.offline:
+            self.name += "_offline"
+        self._vqf = _import_peer("vqf", "vqf", self.name)
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        # VQF's C++ binding wants C-contiguous float64 (N,3) buffers: slices/float32 break it.
+        gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
+        acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
+        mag = _mag_of(seq, self.axes, self.name)
+        mag = None if mag is None else np.ascontiguousarray(mag, dtype=np.float64)
+        ts = 1.0 / float(seq.rate)
+        if self.offline:
+            out = self._vqf.offlineVQF(gyr, acc, mag, ts, dict(self.params))
+        else:
+            out = self._vqf.VQF(ts, **self.params).updateBatch(gyr, acc, mag)
+        key = "quat9D" if self.axes == 9 else "quat6D"
+        # VQF 9D reference frame: z up, magnetic north +y (heading from atan2(m_x, m_y)) = ENU.
+        quat = _to_enu(out[key], "ENU")
+        signals = {"gyro_bias": np.asarray(out["bias"], dtype=np.float64),
+                   "rest": np.asarray(out["restDetected"], dtype=bool)}
+        if self.axes == 9:
+            signals["mag_disturbed"] = np.asarray(out["magDistDetected"], dtype=bool)
+            signals["heading_delta"] = np.asarray(out["delta"], dtype=np.float64)
+        return EstimatorOutput(quat, signals)
+
+
+# ---------------------------------------------------------------------------
+# x-io Fusion (imufusion)
+# ---------------------------------------------------------------------------
+
+
+class ImufusionEstimator(_Peer):
+    """x-io Technologies Fusion AHRS, ``pip install imufusion``.
+
+    Defaults are the settings the Fusion README recommends (the library's own defaults
+    disable both rejections): ``gain=0.5``, ``gyroscope_range=2000`` deg/s,
+    ``acceleration_rejection=10`` deg, ``magnetic_rejection=10`` deg,
+    ``rejection_timeout=5`` s (seconds in imufusion >= 1.3, the API wrapped here; 1.2 had a
+    different API: ``Settings(...)``, ``recovery_trigger_period`` in samples).
+    Without ``init_quat`` Fusion's start-up phase (high gain, first 3 s) initialises the
+    attitude; with it, the attitude is seeded and the start-up phase skipped.
+
+    Inputs are converted to deg/s and g; the convention is set to ENU via the property
+    setter because the ``AhrsSettings`` constructor ignores its ``convention`` argument.
+
+    signals: ``acc_rejected`` (N,) bool, ``mag_rejected`` (N,) bool (9D).
+    """
+
+    base_name = "imufusion"
+
+    def __init__(self, axes: int = 9, gain: float = 0.5, gyroscope_range: float = 2000.0,
+                 acceleration_rejection: float = 10.0, magnetic_rejection: float = 10.0,
+                 rejection_timeout: float = 5.0):
+        super().__init__(axes, dict(gain=gain, gyroscope_range=gyroscope_range,
+                                    acceleration_rejection=acceleration_rejection,
+                                    magnetic_rejection=magnetic_rejection,
+                                    rejection_timeout=rejection_timeout))
+        self._fusion = _import_peer("imufusion", "imufusion", self.name)
+        if not hasattr(self._fusion, "AhrsSettings"):
+            raise PeerUnavailable(f"peer estimator '{self.name}' needs imufusion >= 1.3 (found "
+                                  f"{getattr(self._fusion, '__version__', 'an older version')}); "
+                                  f"upgrade with: pip install -U imufusion")
+
+    def make_ahrs(self, rate: float):
+        """A configured ``imufusion.Ahrs`` in the ENU convention."""
+        f, p = self._fusion, self.params
+        ahrs = f.Ahrs()
+        s = f.AhrsSettings()
+        s.sample_rate = float(rate)
+        s.gain = p["gain"]
+        s.gyroscope_range = p["gyroscope_range"]
+        s.acceleration_rejection = p["acceleration_rejection"]
+        s.magnetic_rejection = p["magnetic_rejection"]
+        s.rejection_timeout = p["rejection_timeout"]
+        s.convention = f.CONVENTION_ENU  # AhrsSettings(convention=...) would silently keep NWU
+        if s.convention != f.CONVENTION_ENU:
+            raise RuntimeError("imufusion: could not set the ENU convention")
+        ahrs.set_settings(s)
+        return ahrs
+
+    def fusion_inputs(self, seq: ImuSequence):
+        """(gyro deg/s (N,3), accel g (N,3), mag uT (N,3) or None) as Fusion takes them.
+
+        (imufusion 1.3 normalises the accelerometer for the attitude update, so the g scale
+        only matters for its gravity/linear-acceleration outputs; deg/s matters fully.)"""
+        mag = _mag_of(seq, self.axes, self.name)
+        gyr = np.ascontiguousarray(rad_to_deg(seq.gyro), dtype=np.float64)
+        acc = np.ascontiguousarray(seq.accel / GRAVITY, dtype=np.float64)
+        mag = None if mag is None else np.ascontiguousarray(mag, dtype=np.float64)
+        return gyr, acc, mag
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        gyr, acc, mag = self.fusion_inputs(seq)
+        ahrs = self.make_ahrs(seq.rate)
+        dt = seq.dt
+        n = len(seq)
+        quat = np.empty((n, 4))
+        acc_rej = np.zeros(n, dtype=bool)
+        mag_rej = np.zeros(n, dtype=bool)
+        if init_quat is not None:
+            # The start-up phase re-initialises the attitude from the accelerometer (heading 0)
+            # at the first update, overwriting set_quaternion: a known start skips it.
+            ahrs.skip_startup()
+            ahrs.set_quaternion(self._initial(seq, init_quat, mag))
+        for k in range(n):
+            ahrs.set_sample_period(float(dt[k]))
+            if mag is None:
+                ahrs.update_no_magnetometer(gyr[k], acc[k])
+            else:
+                ahrs.update(gyr[k], acc[k], mag[k])
+            quat[k] = ahrs.get_quaternion()
+            st = ahrs.get_internal_states()
+            acc_rej[k] = st.accelerometer_ignored
+            mag_rej[k] = st.magnetometer_ignored
+        signals = {"acc_rejected": acc_rej}
+        if self.axes == 9:
+            signals["mag_rejected"] = mag_rej
+        return EstimatorOutput(_to_enu(quat, "ENU"), signals)
+
+
+# ---------------------------------------------------------------------------
+# ahrs package: Madgwick, Mahony, EKF
+# ---------------------------------------------------------------------------
+
+
+class _AhrsFilter(_Peer):
+    """Common loop for the ``ahrs`` package filters (one ``update`` call per sample)."""
+
+    frame = "ENU"          # navigation frame the filter estimates in
+    accel_sign = 1.0       # -1: the filter expects the gravity vector (down), not specific force
+
+    def __init__(self, axes: int, params: Dict[str, Any]):
+        super().__init__(axes, params)
+        self._ahrs = _import_peer("ahrs.filters", "ahrs", self.name)
+
+    def _make(self, seq: ImuSequence, mag):
+        raise NotImplementedError
+
+    def _step(self, f, q, gyr, acc, mag, dt):
+        raise NotImplementedError
+
+    def _signals(self, f) -> Dict[str, np.ndarray]:
+        return {}
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        mag = _mag_of(seq, self.axes, self.name)
+        f = self._make(seq, mag)
+        n = len(seq)
+        q_enu0 = self._initial(seq, init_quat, mag)
+        quat = np.empty((n, 4))
+        quat[0] = _from_enu(q_enu0, self.frame)
+        gyr, acc, dt = seq.gyro, self.accel_sign * seq.accel, seq.dt
+        sig = [self._signals(f)]
+        for k in range(1, n):
+            quat[k] = self._step(f, quat[k - 1], gyr[k], acc[k], None if mag is None else mag[k], float(dt[k]))
+            sig.append(self._signals(f))
+        signals = {key: np.stack([s[key] for s in sig]) for key in sig[0]}
+        return EstimatorOutput(_to_enu(quat, self.frame), signals)
+
+
+class AhrsMadgwickEstimator(_AhrsFilter):
+    """Madgwick's gradient-descent filter from ``ahrs`` (``ahrs.filters.Madgwick``).
+
+    ``gain`` (beta): authors' defaults 0.033 (6D, ``gain_imu``) and 0.041 (9D, ``gain_marg``)
+    when ``None``. Frame NWU (x magnetic north, z up); specific force input.
+    """
+
+    base_name = "madgwick"
+    frame = "NWU"
+
+    def __init__(self, axes: int = 9, gain: Optional[float] = None):
+        if gain is None:
+            gain = 0.041 if int(axes) == 9 else 0.033
+        super().__init__(axes, dict(gain=gain))
+
+    def _make(self, seq, mag):
+        return self._ahrs.Madgwick(frequency=float(seq.rate), gain=self.params["gain"])
+
+    def _step(self, f, q, gyr, acc, mag, dt):
+        if mag is None:
+            return f.updateIMU(q, gyr, acc, dt=dt)
+        return f.updateMARG(q, gyr, acc, mag, dt=dt)
+
+
+class AhrsMahonyEstimator(_AhrsFilter):
+    """Mahony's explicit complementary filter from ``ahrs`` (``ahrs.filters.Mahony``).
+
+    Authors' defaults ``k_P=1.0``, ``k_I=0.3``. Frame ENU (its magnetic reference is
+    ``[0, b_h, b_z]``: north = +y); specific force input.
+
+    signals: ``gyro_bias`` (N,3) rad/s (the filter's integral term ``b``).
+    """
+
+    base_name = "mahony"
+    frame = "ENU"
+
+    def __init__(self, axes: int = 9, k_P: float = 1.0, k_I: float = 0.3):
+        super().__init__(axes, dict(k_P=k_P, k_I=k_I))
+
+    def _make(self, seq, mag):
+        return self._ahrs.Mahony(frequency=float(seq.rate), k_P=self.params["k_P"], k_I=self.params["k_I"])
+
+    def _step(self, f, q, gyr, acc, mag, dt):
+        if mag is None:
+            return f.updateIMU(q, gyr, acc, dt=dt)
+        return f.updateMARG(q, gyr, acc, mag, dt=dt)
+
+    def _signals(self, f):
+        return {"gyro_bias": np.array(f.b, dtype=np.float64)}
+
+
+class AhrsEKFEstimator(_AhrsFilter):
+    """Quaternion EKF from ``ahrs`` (``ahrs.filters.EKF``), in its default NED frame.
+
+    ``noises`` = (var_gyr, var_acc, var_mag) spectral variances, authors' default
+    (0.3^2, 0.5^2, 0.8^2). ``magnetic_ref``: the field direction it expects — a dip
+    angle in degrees (float) or a 3-vector in NED; ``None`` (default) measures the dip
+    at the first sample (the library's own default is the WMM field of Munich).
+    The EKF expects the accelerometer to point DOWN at rest (its ``a_ref`` is the
+    down axis in both NED and ENU), so the specific force is negated.
+    """
+
+    base_name = "ekf"
+    frame = "NED"
+    accel_sign = -1.0
+
+    def __init__(self, axes: int = 9, noises=(0.3 ** 2, 0.5 ** 2, 0.8 ** 2), magnetic_ref=None):
+        super().__init__(axes, dict(noises=tuple(float(x) for x in noises), magnetic_ref=magnetic_ref))
+
+    def _make(self, seq, mag):
+        mref = self.params["magnetic_ref"]
+        if mref is None:
+            mref = _dip_deg(seq.accel[0], mag[0]) if mag is not None else 60.0  # unused in 6D
+        f = self._ahrs.EKF(frequency=float(seq.rate), frame=self.frame, magnetic_ref=mref,
+                           noises=list(self.params["noises"]))
+        # The EKF's measurement model h() picks 3 or 6 rows from whether ``self.mag`` is set,
+        # which only happens in its batch mode: set it for sample-by-sample 9D updates.
+        f.mag = mag
+        return f
+
+    def _step(self, f, q, gyr, acc, mag, dt):
+        return f.update(q, gyr, acc, mag, dt=dt)
+
+
+# ---------------------------------------------------------------------------
+# RIANN
+# ---------------------------------------------------------------------------
+
+
+class RIANNEstimator(_Peer):
+    """RIANN (Weber, Gühmann & Seel, AI 2021), 6-axis, ``pip install riann``.
+
+    No parameters besides ``onnx_path`` (default: the model shipped inside the installed
+    package, passed explicitly because riann 0.2.0 does not find it on its own) and
+    ``streaming``: ``False`` (default) runs the batch API ``predict(acc, gyr, fs)``,
+    ``True`` calls ``predict_step`` per sample (same result; for speed benchmarks).
+    Heading-free: ``heading_free = True`` (score inclination only).
+    """
+
+    base_name = "riann"
+    heading_free = True
+
+    def __init__(self, axes: int = 6, onnx_path: Optional[str] = None, streaming: bool = False):
+        if int(axes) != 6:
+            raise ValueError(f"axes: RIANN is a 6-axis estimator (no magnetometer), got axes={axes!r}")
+        riann = _import_peer("riann", "riann", "riann6d")
+        _import_peer("riann.riann", "riann", "riann6d")
+        if onnx_path is None:
+            onnx_path = str(Path(riann.__file__).resolve().parent / "riann.onnx")
+        if not Path(onnx_path).is_file():
+            raise FileNotFoundError(f"riann: ONNX model not found at {onnx_path}")
+        super().__init__(6, dict(onnx_path=str(onnx_path), streaming=bool(streaming)))
+        self._model = importlib.import_module("riann.riann").RIANN(str(onnx_path))
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
+        gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
+        fs = float(seq.rate)
+        if self.params["streaming"]:
+            self._model.reset_state()
+            self._model.set_sampling_rate(fs)
+            quat = np.stack([self._model.predict_step(acc[k], gyr[k]) for k in range(len(seq))])
+        else:
+            quat = self._model.predict(acc, gyr, fs)
+        return EstimatorOutput(_to_enu(np.asarray(quat, dtype=np.float64), "ENU"), {})
+
+
+# ---------------------------------------------------------------------------
+# registry, defaults, tuning grids
+# ---------------------------------------------------------------------------
+
+PEER_CLASSES = {
+    "vqf": VQFEstimator,
+    "imufusion": ImufusionEstimator,
+    "madgwick": AhrsMadgwickEstimator,
+    "mahony": AhrsMahonyEstimator,
+    "ekf": AhrsEKFEstimator,
+    "riann": RIANNEstimator,
+}
+"""Peer key -> wrapper class (all take ``axes`` plus the keyword parameters below)."""
+
+PEER_AXES = {"vqf": (6, 9), "imufusion": (6, 9), "madgwick": (6, 9), "mahony": (6, 9),
+             "ekf": (6, 9), "riann": (6,)}
+
+PEER_GRIDS: Dict[str, List[Dict[str, Any]]] = {
+    # VQF: time constants of the accelerometer (inclination) and magnetometer (heading)
+    # corrections, around the authors' (3 s, 9 s). 6 points; tauMag is ignored by 6D.
+    "vqf": [dict(tauAcc=a, tauMag=m) for a in (1.0, 3.0, 6.0) for m in (3.0, 9.0)],
+    # Fusion: complementary gain (README default 0.5) x acceleration rejection angle.
+    "imufusion": [dict(gain=g, acceleration_rejection=r) for g in (0.1, 0.5, 1.0) for r in (10.0, 20.0)],
+    # Madgwick beta, rad/s (authors: 0.033 6D / 0.041 9D), log-spaced.
+    "madgwick": [dict(gain=g) for g in (0.005, 0.01, 0.02, 0.041, 0.1, 0.2)],
+    # Mahony proportional / integral gains (authors 1.0 / 0.3).
+    "mahony": [dict(k_P=p, k_I=i) for p in (0.3, 1.0, 3.0) for i in (0.03, 0.3)],
+    # EKF spectral variances (var_gyr, var_acc, var_mag), authors (0.09, 0.25, 0.64):
+    # trust in the gyro vs. the references.
+    "ekf": [dict(noises=(g, a, a * 2.56)) for g in (0.01, 0.09) for a in (0.05, 0.25, 1.0)],
+    # RIANN has no tunable parameters.
+    "riann": [dict()],
+}
+"""Small (<= 6 points) grids for tuning each peer on training recordings; each point is a
+dict of keyword arguments for the wrapper (the other parameters keep the defaults)."""
+
+
+def make_peer(key: str, axes: int, **params) -> Estimator:
+    """One peer by key (see :data:`PEER_CLASSES`) with the given parameters."""
+    if key not in PEER_CLASSES:
+        raise ValueError(f"unknown peer {key!r}; expected one of {sorted(PEER_CLASSES)}")
+    return PEER_CLASSES[key](axes=axes, **params)
+
+
+def peer_estimators(axes: int, params: Optional[Dict[str, Dict[str, Any]]] = None) -> List[Estimator]:
+    """The peers available for ``axes``-axis data (6 or 9), default parameters unless
+    ``params[key]`` gives keyword arguments for peer ``key``; peers whose library is not
+    installed are skipped with a warning (``pip install -e .[peers]``)."""
+    axes = _check_axes(axes)
+    params = dict(params or {})
+    unknown = set(params) - set(PEER_CLASSES)
+    if unknown:
+        raise ValueError(f"params: unknown peers {sorted(unknown)}; expected keys among {sorted(PEER_CLASSES)}")
+    out: List[Estimator] = []
+    missing = []
+    for key, cls in PEER_CLASSES.items():
+        if axes not in PEER_AXES[key]:
+            continue
+        try:
+            out.append(cls(axes=axes, **params.get(key, {})))
+        except PeerUnavailable:
+            missing.append(key)
+    if missing:
+        warnings.warn(f"peer estimators skipped (library not installed): {', '.join(missing)}; "
+                      f"install them with: {INSTALL_HINT}", stacklevel=2)
+    return out
