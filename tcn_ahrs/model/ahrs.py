@@ -116,6 +116,35 @@ class LearnedAHRS(nn.Module):
             out["e_mag"] = e_mag
         return out
 
+    def run_sequence(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int = 0) -> Dict[str, Tensor]:
+        """A whole recording: the (causal) calibration sees every sample; the ECF and the
+        integration start at sample ``start`` (first valid ground truth) from ``r0``.
+
+        imu (1, N, C), dt (1, N), r0 (1, 3, 3). Returns the :meth:`forward` dict (entries before
+        ``start``: raw-calibrated values, zero innovations) plus ``rot`` (1, N, 3, 3) in float64
+        (samples before ``start`` hold r0)."""
+        cal = self.calibration(imu)
+        out = dict(cal)
+        omega = cal["gyro"].clone()
+        if self.ecf is not None:
+            s = slice(start, None)
+            om, e_acc, e_mag = self.ecf(cal["gyro"][:, s], cal["acc"][:, s],
+                                        cal["mag"][:, s] if "mag" in cal else None,
+                                        imu[:, s, 0:3], imu[:, s, 3:6], r0.to(imu.dtype), dt[:, s])
+            omega[:, s] = om
+            for name, e in (("e_acc", e_acc), ("e_mag", e_mag)):
+                if e is not None:
+                    full = torch.zeros_like(omega)
+                    full[:, s] = e
+                    out[name] = full
+        out["omega"] = omega
+        r0d = r0.to(torch.float64)
+        rot = self.attitude(omega[:, start:], dt[:, start:], r0d)
+        if start > 0:
+            rot = torch.cat([r0d.unsqueeze(1).expand(-1, start, 3, 3), rot], 1)
+        out["rot"] = rot
+        return out
+
     @staticmethod
     def attitude(omega: Tensor, dt: Tensor, r0: Tensor) -> Tensor:
         """Eq. 3: ``C_k = C_0 ∏ exp(ω̂ Δt)`` -> (B, N, 3, 3) (computed in r0's dtype; pass a

@@ -106,7 +106,7 @@ class Calibration(nn.Module):
         return max([int(n.receptive_field) for n in nets] + [1])
 
     @staticmethod
-    def _apply(net: Optional[nn.Module], x: Tensor, scale: float) -> Tensor:
+    def _error(net: Optional[nn.Module], x: Tensor, scale: float) -> Tensor:
         if net is None:
             return x.new_zeros(x.shape[:-1] + (3,))
         return scale * net(x)
@@ -122,11 +122,11 @@ class Calibration(nn.Module):
         z = (imu - self.input_mean) / self.input_std
         gyro_in = z if self.gyro_input == "all" else z[..., 0:3]
         out: Dict[str, Tensor] = {}
-        out["gyro_error"] = self._apply(self.gyro_error_net, gyro_in, self.error_scale["gyro"])
-        out["acc_error"] = self._apply(self.acc_error_net, z[..., 3:6], self.error_scale["acc"])
+        out["gyro_error"] = self._error(self.gyro_error_net, gyro_in, self.error_scale["gyro"])
+        out["acc_error"] = self._error(self.acc_error_net, z[..., 3:6], self.error_scale["acc"])
         out["gyro"] = self.gyro_matrix(imu[..., 0:3]) - out["gyro_error"]
         out["acc"] = self.acc_matrix(imu[..., 3:6]) - out["acc_error"]
         if self.axes == 9:
-            out["mag_error"] = self._apply(self.mag_error_net, z[..., 6:9], self.error_scale["mag"])
+            out["mag_error"] = self._error(self.mag_error_net, z[..., 6:9], self.error_scale["mag"])
             out["mag"] = self.mag_matrix(imu[..., 6:9]) - out["mag_error"]
         return out

@@ -1,0 +1,111 @@
+"""Checkpoints: atomic writes, safe loading, and a layout check before use.
+
+* :class:`AtomicCheckpointIO` — Lightning CheckpointIO that writes to a temporary file in the
+  same folder and ``os.replace``-s it over the target, so a crash mid-write never leaves a
+  truncated ``last.ckpt``/best checkpoint; loads with ``torch.load(weights_only=True)``.
+* :func:`load_checkpoint` — ``weights_only=True`` loading with clear errors.
+* Each checkpoint carries ``checkpoint["tcn_ahrs"] = {"model": <model config>, "layout":
+  {"axes": 6|9, "channels": [...]}, "data": <data name>}`` (plain types only, so safe loading
+  works); :func:`check_layout` refuses a checkpoint whose layout differs from the data's.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional
+
+import torch
+from pytorch_lightning.plugins.io import TorchCheckpointIO
+
+from .model.ahrs import LearnedAHRS
+
+CHANNELS = {6: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"],
+            9: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"]}
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be used (missing, unreadable, or for another data layout)."""
+
+
+def atomic_save(obj: Any, path) -> None:
+    """``torch.save`` to ``path`` atomically (temp file in the same folder + ``os.replace``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            torch.save(obj, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_checkpoint(path, map_location="cpu") -> Dict[str, Any]:
+    """Load a checkpoint dict with ``weights_only=True`` (no arbitrary code from the file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint file not found")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # pickle errors, truncated files, disallowed types
+        raise CheckpointError(f"{path}: cannot load checkpoint safely (weights_only=True): {e}") from e
+
+
+class AtomicCheckpointIO(TorchCheckpointIO):
+    """Lightning CheckpointIO with atomic saves and ``weights_only=True`` loads."""
+
+    def save_checkpoint(self, checkpoint, path, storage_options=None) -> None:
+        atomic_save(checkpoint, path)
+
+    def load_checkpoint(self, path, map_location=None, weights_only=None):
+        return load_checkpoint(path, map_location=map_location or "cpu")
+
+
+def layout_meta(model_cfg: Mapping, axes: int, data_name: str = "") -> Dict[str, Any]:
+    return {"model": dict(model_cfg), "layout": {"axes": int(axes), "channels": list(CHANNELS[int(axes)])},
+            "data": str(data_name)}
+
+
+def checkpoint_meta(ckpt: Mapping, path="checkpoint") -> Dict[str, Any]:
+    meta = ckpt.get("tcn_ahrs")
+    if not isinstance(meta, Mapping) or "layout" not in meta or "model" not in meta:
+        raise CheckpointError(f"{path}: not a tcn-ahrs checkpoint (no 'tcn_ahrs' model/layout record)")
+    return dict(meta)
+
+
+def check_layout(ckpt: Mapping, axes: int, path="checkpoint") -> None:
+    """Raise :class:`CheckpointError` unless the checkpoint was trained for ``axes``-axis input."""
+    meta = checkpoint_meta(ckpt, path)
+    got = int(meta["layout"]["axes"])
+    if got != int(axes):
+        variant = meta["model"].get("variant", "?")
+        raise CheckpointError(
+            f"{path}: checkpoint of model variant '{variant}' expects {got}-axis input "
+            f"({', '.join(meta['layout']['channels'])}) but the data provides {axes} axes; "
+            f"use a {axes}-axis checkpoint, or evaluate this one with data.axes={got}"
+            + (" (drops the magnetometer)" if got == 6 else ""))
+
+
+def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") -> LearnedAHRS:
+    """Build the :class:`LearnedAHRS` stored in a checkpoint (Lightning or plain); with ``axes``
+    the layout is checked first."""
+    ckpt = load_checkpoint(path, map_location)
+    meta = checkpoint_meta(ckpt, path)
+    if axes is not None:
+        check_layout(ckpt, axes, path)
+    model = LearnedAHRS.from_config(meta["model"], axes=int(meta["layout"]["axes"]))
+    state = ckpt.get("state_dict", ckpt.get("model_state"))
+    if state is None:
+        raise CheckpointError(f"{path}: no 'state_dict' in checkpoint")
+    state = {k[len("model."):]: v for k, v in state.items() if k.startswith("model.")} or dict(state)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as e:
+        raise CheckpointError(f"{path}: weights do not match the model config stored with them: {e}") from e
+    model.eval()
+    return model

@@ -1,0 +1,71 @@
+"""The learned AHRS as an :class:`~tcn_ahrs.estimators.base.Estimator` (wraps a trained checkpoint)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import torch
+
+from .. import so3
+from ..checkpoint import CheckpointError, model_from_checkpoint
+from ..model.ahrs import LearnedAHRS
+from ..sequence import ImuSequence
+from .base import EstimatorOutput
+
+
+class LearnedEstimator:
+    """TCN calibration + open-loop ECF, run on a whole recording (feed-forward, no loop).
+
+    The network sees every sample (causally); the ECF and the integration start at the first
+    sample with valid ground truth from ``init_quat`` (identity when ``None``).
+
+    Output signals (N, 3), body frame:
+        ``gyro_correction`` ω̂ − y_gyr (rad/s; everything the model adds to the raw gyro),
+        ``gyro_bias`` the TCN's gyro error term ω̃ (rad/s, Eq. 12),
+        ``acc_error`` ã (m/s^2, Eq. 13), ``mag_error`` m̃ (uT, Eq. 14; 9-axis only).
+    """
+
+    def __init__(self, model: Union[LearnedAHRS, str, Path], name: str = "TCN-ECF",
+                 device: Union[str, torch.device] = "cpu"):
+        if isinstance(model, (str, Path)):
+            self.ckpt_path = str(model)
+            model = model_from_checkpoint(model)
+        else:
+            self.ckpt_path = None
+        self.model = model.to(device).eval()
+        self.device = torch.device(device)
+        self.name = name
+
+    @property
+    def axes(self) -> int:
+        return self.model.axes
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        if self.axes == 9 and not seq.has_mag:
+            raise CheckpointError(
+                f"{seq.source}: field 'mag': the model {self.ckpt_path or ''} (variant "
+                f"'{self.model.variant}') expects 9-axis input but recording {seq.name!r} has no "
+                "magnetometer; use a 6-axis checkpoint")
+        parts = [seq.gyro, seq.accel] + ([seq.mag] if self.axes == 9 else [])
+        imu = torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=self.device)[None]
+        dt = torch.as_tensor(seq.dt, dtype=torch.float32, device=self.device)[None]
+        start = 0
+        if seq.quat_valid is not None and seq.quat_valid.any():
+            start = int(np.argmax(seq.quat_valid))
+        if init_quat is None:
+            q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+        else:
+            q0 = torch.as_tensor(np.asarray(init_quat, dtype=np.float64).reshape(4))
+        r0 = so3.quat_to_matrix(q0).to(self.device)[None]
+        with torch.no_grad():
+            out = self.model.run_sequence(imu, dt, r0, start)
+        quat = so3.matrix_to_quat(out["rot"][0]).cpu().numpy()
+        sig = {
+            "gyro_correction": (out["omega"][0] - imu[0, :, 0:3]).cpu().double().numpy(),
+            "gyro_bias": out["gyro_error"][0].cpu().double().numpy(),
+            "acc_error": out["acc_error"][0].cpu().double().numpy(),
+        }
+        if "mag_error" in out:
+            sig["mag_error"] = out["mag_error"][0].cpu().double().numpy()
+        return EstimatorOutput(quat=quat, signals=sig)

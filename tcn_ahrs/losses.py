@@ -1,0 +1,101 @@
+"""Training loss on incremental rotations (paper Sec. 3.4, Eqs. 26-28).
+
+``δC_{i,i+j} = C_i^T C_{i+j} = ∏_{k=i+1}^{i+j} exp(ω_k Δt_k)``                          (Eq. 26)
+``L_j = Σ_i ρ(Log(δC_gt,i,i+j^T δĈ_i,i+j))``                                          (Eq. 27)
+``L = L_16 + L_32``                                                                      (Eq. 28)
+
+ρ is the Huber loss with δ = 0.005 rad, applied per component and divided by δ (PyTorch's
+smooth-L1 with ``beta = δ``): the minimiser is the same as the paper's, the value reads as
+"≈ |error| in rad" for large errors, and Adam is insensitive to the constant factor.
+
+The predicted increments need no absolute attitude: for every start i the product of j
+consecutive exponentials is built by doubling (``P_2k = P_k(i) P_k(i+k)``), i.e. log2(j)
+batched matmuls over the whole window. The products are formed in float64 (the default
+``dtype``): it costs little (3x3 matrices), and float32 round-off, although the doubling keeps it
+small (~1e-7 rad after 4096 products; measured in tests/test_losses.py), would otherwise set a
+floor under the residuals a well-trained model drives toward.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from . import so3
+
+
+def window_products(rot: Tensor, j: int) -> Tensor:
+    """Products of j consecutive matrices: rot (..., N, 3, 3) -> (..., N-j+1, 3, 3) with entry i
+    = ``rot[i] rot[i+1] ... rot[i+j-1]``. Any j >= 1 (binary decomposition of j)."""
+    if j < 1 or j > rot.shape[-3]:
+        raise ValueError(f"window_products: j={j} must be in [1, N={rot.shape[-3]}]")
+    result = None  # product of the first `done` factors, for every start
+    done = 0
+    power = rot  # products of `size` consecutive factors
+    size = 1
+    while True:
+        if j & size:
+            if result is None:
+                result = power
+            else:
+                n = min(result.shape[-3], power.shape[-3] - done)
+                result = result[..., :n, :, :] @ power[..., done:done + n, :, :]
+            done += size
+        if size * 2 > j:
+            break
+        power = power[..., :-size, :, :] @ power[..., size:, :, :]
+        size *= 2
+    n_out = rot.shape[-3] - j + 1
+    return result[..., :n_out, :, :]
+
+
+def predicted_increments(omega: Tensor, dt: Tensor, j: int, dtype=torch.float64) -> Tensor:
+    """δĈ_{i,i+j} for i = 0..N-1-j from body rates omega (B, N, 3), dt (B, N): sample k moves
+    the attitude from k-1 to k, so the increment from i to i+j uses samples i+1..i+j.
+    Returns (B, N-j, 3, 3) in ``dtype``."""
+    inc = so3.exp(omega[..., 1:, :].to(dtype) * dt[..., 1:, None].to(dtype))
+    return window_products(inc, j)
+
+
+def true_increments(nav_from_body: Tensor, j: int) -> Tensor:
+    """δC_gt,{i,i+j} = C_i^T C_{i+j}: (B, N, 3, 3) -> (B, N-j, 3, 3)."""
+    return nav_from_body[..., :-j, :, :].transpose(-1, -2) @ nav_from_body[..., j:, :, :]
+
+
+def increment_valid(valid: Tensor, j: int) -> Tensor:
+    """(B, N) bool -> (B, N-j) bool: True where every sample i..i+j has valid ground truth
+    (an increment touching an invalid sample is masked)."""
+    bad = (~valid).to(torch.int32)
+    c = torch.cat([torch.zeros_like(bad[..., :1]), bad.cumsum(-1)], -1)  # c[k] = #bad before k
+    return (c[..., j + 1:] - c[..., :-j - 1]) == 0
+
+
+def increment_loss(omega: Tensor, dt: Tensor, nav_from_body_gt: Tensor, valid: Tensor,
+                   js: Sequence[int] = (16, 32), huber_delta: float = 0.005,
+                   dtype=torch.float64) -> Tensor:
+    """Eq. 28: Σ_j mean over valid increments and components of Huber(Log(δC_gt^T δĈ))/δ.
+
+    Args:
+        omega: (B, N, 3) estimated body rate ω̂, rad/s.
+        dt:    (B, N) s.
+        nav_from_body_gt: (B, N, 3, 3) ground truth (rows where invalid may hold anything finite
+            or NaN; they are masked).
+        valid: (B, N) bool ground-truth validity.
+    Returns a scalar in omega's dtype (0 if no increment is valid).
+    """
+    gt = torch.where(valid[..., None, None], nav_from_body_gt.to(dtype),
+                     torch.eye(3, dtype=dtype, device=omega.device))
+    total = omega.new_zeros(())
+    for j in js:
+        if omega.shape[-2] <= j:
+            continue
+        pred = predicted_increments(omega, dt, j, dtype)
+        err = so3.log(true_increments(gt, j).transpose(-1, -2) @ pred)  # (B, N-j, 3)
+        m = increment_valid(valid, j)
+        if not bool(m.any()):
+            continue
+        per = F.smooth_l1_loss(err[m], torch.zeros_like(err[m]), beta=huber_delta, reduction="mean")
+        total = total + per.to(omega.dtype)
+    return total

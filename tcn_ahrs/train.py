@@ -1,0 +1,304 @@
+"""Training glue: the LightningModule and the bodies of the Hydra entry points.
+
+* :class:`AHRSModule` — LearnedAHRS + increment loss (Eqs. 26-28) + AdamW/cosine schedule;
+  validation = loss and AAE on the full validation recordings (feed-forward, cheap).
+* :func:`train_main(cfg)` — ``scripts/train.py``: build data + model, fit (best-validation and
+  ``last.ckpt`` written atomically), then evaluate the best checkpoint on held-out recordings
+  with the evaluation runner (:func:`tcn_ahrs.evaluate.evaluate`) and print the table.
+* :func:`evaluate_main(cfg)` — ``scripts/evaluate.py``: evaluate a checkpoint.
+"""
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Optional
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from . import so3
+from .checkpoint import AtomicCheckpointIO, CheckpointError, check_layout, layout_meta, load_checkpoint
+from .data import AHRSDataModule, augment
+from .losses import increment_loss
+from .model.ahrs import LearnedAHRS
+
+TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
+              "huber_delta", "noise", "monitor", "max_time", "limit_train_batches"}
+
+
+class AHRSModule(pl.LightningModule):
+    """LightningModule around :class:`LearnedAHRS`. All arguments are plain types (they are
+    saved in the checkpoint, which is loaded with ``weights_only=True``)."""
+
+    def __init__(self, model_cfg: Dict[str, Any], axes: int, lr: float = 0.01,
+                 weight_decay: float = 0.1, epochs: int = 100, window: int = 2000,
+                 loss_js: List[int] = (16, 32), huber_delta: float = 0.005,
+                 noise: Optional[Dict[str, float]] = None, data_name: str = ""):
+        super().__init__()
+        self.save_hyperparameters()
+        self.model = LearnedAHRS.from_config(model_cfg, axes=axes)
+        self.loss_js = [int(j) for j in loss_js]
+        self.noise = dict(noise or {})
+
+    # ------------------------------------------------------------------ steps
+    def _store(self, which: str):
+        store = getattr(self.trainer.datamodule, which)
+        return store.to(self.device)
+
+    def training_step(self, batch, batch_idx):
+        (starts,) = batch
+        w = self._store("train_store").gather(starts, self.trainer.datamodule.window)
+        imu = augment(w["imu"], self.noise)
+        out = self.model(imu, w["dt"], w["rot"][:, 0])
+        loss = increment_loss(out["omega"], w["dt"], w["rot"], w["valid"], self.loss_js,
+                              self.hparams.huber_delta)
+        self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True,
+                 batch_size=starts.shape[0], sync_dist=True)
+        return loss
+
+    def validation_step(self, batch, batch_idx):
+        i = int(batch[0])
+        s = self._store("val_store").sequence(i)
+        valid = s["valid"]
+        k0 = int(torch.argmax(valid[0].to(torch.int8)))
+        out = self.model.run_sequence(s["imu"], s["dt"], s["rot"][:, k0], k0)
+        loss = increment_loss(out["omega"], s["dt"], s["rot"], valid, self.loss_js, self.hparams.huber_delta)
+        # AAE (Eq. 29) on the valid samples; the estimate starts at ground truth at k0, so no
+        # alignment is needed (same definition as tcn_ahrs.metrics.aae).
+        err = so3.log(s["rot"][0, valid[0]].double().transpose(-1, -2) @ out["rot"][0, valid[0]])
+        aae = torch.sqrt((err ** 2).sum(-1).mean()) * (180.0 / math.pi)
+        self.log("val/loss", loss, prog_bar=True, batch_size=1, sync_dist=True)
+        self.log("val/aae_deg", aae.float(), prog_bar=True, batch_size=1, sync_dist=True)
+
+    # -------------------------------------------------------------- optimiser
+    def configure_optimizers(self):
+        decay, no_decay = [], []
+        for name, p in self.model.named_parameters():
+            # Convolution kernels and the calibration matrices' deviation from I decay; biases,
+            # BatchNorm and the ECF gains do not.
+            (decay if (p.ndim >= 2) else no_decay).append(p)
+        opt = torch.optim.AdamW([{"params": decay, "weight_decay": self.hparams.weight_decay},
+                                 {"params": no_decay, "weight_decay": 0.0}], lr=self.hparams.lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, int(self.hparams.epochs)))
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
+
+    def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
+        cfg = dict(self.hparams.model_cfg)
+        cfg["axes"] = self.model.axes
+        checkpoint["tcn_ahrs"] = layout_meta(cfg, self.model.axes, self.hparams.data_name)
+
+
+# ====================================================================== helpers
+def _plain(cfg) -> Any:
+    return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
+
+
+def check_keys(section: Mapping, allowed: set, where: str) -> None:
+    unknown = set(section) - allowed
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed)}")
+
+
+def model_axes(cfg) -> int:
+    """Model input axes: ``model.axes`` (default: ``data.axes``); a 9-axis model on 6-axis data is an error."""
+    data_axes = int(cfg.data.get("axes", 9))
+    axes = cfg.model.get("axes")
+    axes = data_axes if axes is None else int(axes)
+    if axes == 9 and data_axes == 6:
+        raise ValueError(f"model '{cfg.model.get('variant')}' needs 9 axes but data '{cfg.data.name}' is "
+                         "6-axis (data.axes=6): choose a 6-axis model (model=ahrs6) or data.axes=9")
+    return axes
+
+
+def baseline_estimators(names, rate: Optional[float] = None) -> list:
+    """Classical estimators by short name (``raw``, ``ecf``, ``mahony``, ``madgwick``, ...);
+    unavailable ones are skipped with a warning."""
+    from . import estimators as est_pkg
+
+    out = []
+    for n in names or []:
+        n = str(n)
+        try:
+            if n == "raw":
+                from .estimators.raw import RawIntegration
+                out.append(RawIntegration())
+                continue
+            build = getattr(est_pkg, "build_estimator", None)
+            if build is not None:
+                out.append(build(n))
+                continue
+            from .estimators import classical  # noqa: F401  (helper-4's module)
+            cls = {"ecf": "ClosedLoopECF", "mahony": "Mahony", "madgwick": "Madgwick",
+                   "eskf": "ESKF", "robust": "RobustESKF"}.get(n, n)
+            out.append(getattr(classical, cls)())
+        except Exception as e:  # noqa: BLE001  a missing baseline must not lose a trained model
+            warnings.warn(f"baseline {n!r} unavailable, skipped: {type(e).__name__}: {e}")
+    return out
+
+
+def find_resume_checkpoint(run_dir: Path) -> Path:
+    """``run_dir/checkpoints/last.ckpt``, else the newest ``last.ckpt`` among sibling run dirs."""
+    own = run_dir / "checkpoints" / "last.ckpt"
+    if own.is_file():
+        return own
+    cands = sorted(run_dir.parent.glob("*/checkpoints/last.ckpt"), key=lambda p: p.stat().st_mtime)
+    cands = [c for c in cands if c.parent.parent != run_dir]
+    if not cands:
+        raise CheckpointError(f"resume=true: no last.ckpt in {run_dir / 'checkpoints'} nor in any run under "
+                              f"{run_dir.parent}; pass ckpt_path=PATH")
+    return cands[-1]
+
+
+def build_trainer(cfg, run_dir: Path, monitor: str, callbacks_extra=()) -> pl.Trainer:
+    from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
+    from pytorch_lightning.loggers import CSVLogger
+
+    ckpt_cb = ModelCheckpoint(dirpath=str(run_dir / "checkpoints"), filename="best", monitor=monitor,
+                              mode="min", save_top_k=1, save_last=False, auto_insert_metric_name=False,
+                              enable_version_counter=False)
+    # last.ckpt every epoch. (Lightning 2.6's save_last=True only refreshes last.ckpt when the
+    # top-k checkpoint was saved in the same step, which leaves it stale after a non-improving
+    # epoch; a monitor-less top-1 checkpoint named "last" is rewritten every epoch.)
+    last_cb = ModelCheckpoint(dirpath=str(run_dir / "checkpoints"), filename="last", monitor=None,
+                              save_top_k=1, every_n_epochs=1, enable_version_counter=False)
+    loggers = [CSVLogger(str(run_dir), name="logs", version="")]
+    try:
+        from pytorch_lightning.loggers import TensorBoardLogger
+        import tensorboard  # noqa: F401
+        loggers.append(TensorBoardLogger(str(run_dir), name="tb", version="", default_hp_metric=False))
+    except Exception:  # noqa: BLE001
+        pass
+    tr = _plain(cfg.trainer)
+    return pl.Trainer(max_epochs=int(cfg.train.epochs), max_time=cfg.train.get("max_time"),
+                      callbacks=[ckpt_cb, last_cb, LearningRateMonitor("epoch"), *callbacks_extra],
+                      logger=loggers, plugins=[AtomicCheckpointIO()],
+                      default_root_dir=str(run_dir),
+                      limit_train_batches=cfg.train.get("limit_train_batches") or 1.0,
+                      **tr)
+
+
+def _run_dir(cfg) -> Path:
+    if cfg.get("run_dir"):
+        return Path(str(cfg.run_dir))
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        return Path(HydraConfig.get().runtime.output_dir)
+    except Exception:  # noqa: BLE001
+        return Path("runs") / time.strftime("%Y-%m-%d_%H-%M-%S")
+
+
+# ================================================================== entry points
+def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) -> Dict[str, Any]:
+    """Train, then evaluate on held-out data. Returns {"run_dir", "best", "last", "results"}.
+
+    ``train_seqs``/``val_seqs``/``test_seqs`` replace the data config's splits (tests)."""
+    check_keys(cfg.train, TRAIN_KEYS, "train")
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    pl.seed_everything(int(cfg.seed), workers=True)
+    run_dir = _run_dir(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    axes = model_axes(cfg)
+    model_cfg = _plain(cfg.model)
+    model_cfg["axes"] = axes
+    LearnedAHRS.from_config(model_cfg)  # fail early on a bad model config
+
+    dm = AHRSDataModule(cfg.data, axes, cfg.train.window, cfg.train.stride, cfg.train.batch_size,
+                        train_seqs, val_seqs)
+    dm.prepare()
+    module = AHRSModule(model_cfg, axes, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay),
+                        epochs=int(cfg.train.epochs), window=dm.window, loss_js=list(cfg.train.loss_js),
+                        huber_delta=float(cfg.train.huber_delta), noise=_plain(cfg.train.noise),
+                        data_name=str(cfg.data.name))
+    mean, std = dm.statistics()
+    module.model.calibration.set_input_stats(mean, std)
+    monitor = str(cfg.train.monitor) if dm.val_store is not None else "train/loss_epoch"
+
+    ckpt_path = cfg.get("ckpt_path")
+    if cfg.get("resume") and not ckpt_path:
+        ckpt_path = str(find_resume_checkpoint(run_dir))
+    if ckpt_path:
+        ck = load_checkpoint(ckpt_path)
+        check_layout(ck, axes, ckpt_path)
+        print(f"resuming from {ckpt_path} (epoch {ck.get('epoch')})")
+
+    trainer = build_trainer(cfg, run_dir, monitor)
+    if trainer.is_global_zero:
+        (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        n = module.model.num_parameters()
+        print(f"model {model_cfg.get('variant')} ({axes}-axis): {n:,} trainable parameters, "
+              f"receptive field {module.model.receptive_field} samples; "
+              f"{len(dm.starts)} training windows of {dm.window} samples; run dir {run_dir}")
+    t0 = time.perf_counter()
+    trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path)
+    fit_s = time.perf_counter() - t0
+    ckpt_cb = trainer.checkpoint_callback
+    best = ckpt_cb.best_model_path or str(run_dir / "checkpoints" / "last.ckpt")
+    last = str(run_dir / "checkpoints" / "last.ckpt")
+    result = {"run_dir": str(run_dir), "best": best, "last": last, "fit_s": fit_s, "results": None}
+    if not trainer.is_global_zero:
+        return result
+    print(f"training took {fit_s:.1f} s; best checkpoint {best} ({monitor} = {ckpt_cb.best_model_score})")
+
+    ev = cfg.get("eval") or {}
+    if ev.get("enabled", True):
+        from .evaluate import evaluate, print_table
+        from .estimators.learned import LearnedEstimator
+
+        if test_seqs is None:
+            from .datasets import load_split
+            test_seqs = load_split(cfg.data, str(ev.get("split", "test")))
+        test_seqs = [s for s in test_seqs if s.has_gt]
+        if not test_seqs:
+            warnings.warn(f"no held-out recordings with ground truth in split {ev.get('split', 'test')!r}; "
+                          "skipping the evaluation")
+            return result
+        learned = LearnedEstimator(best, name=str(ev.get("name", "TCN-ECF")))
+        estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", [])))
+        res = evaluate(estimators, test_seqs, out_dir=run_dir / "eval", axes=axes,
+                       dataset=str(cfg.data.name), plots=bool(ev.get("plots", True)),
+                       trajectories=bool(ev.get("trajectories", True)))
+        print(f"\nHeld-out evaluation ({cfg.data.name}, split {ev.get('split', 'test')}, "
+              f"{len(test_seqs)} recordings; results in {run_dir / 'eval'}):")
+        print_table(res)
+        result["results"] = res
+    return result
+
+
+EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "device", "plots", "trajectories", "name", "threads", "align"}
+
+
+def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
+    """``scripts/evaluate.py``: the learned estimator + Raw IMU (+ ``baselines``) on
+    ``load_split(data, data.split)``; writes results.json/.md, plots, TUM trajectories."""
+    from .datasets import load_split
+    from .estimators.learned import LearnedEstimator
+    from .evaluate import evaluate, print_table
+
+    check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    if not cfg.get("ckpt"):
+        raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
+    ck = load_checkpoint(cfg.ckpt)
+    axes = int(cfg.data.get("axes", 9))
+    check_layout(ck, axes, cfg.ckpt)
+    seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
+    if not seqs:
+        raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
+                         f"'{cfg.data.split}' (root {cfg.data.get('root')})")
+    out = cfg.get("out") or str(_run_dir(cfg))
+    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "TCN-ECF"), device=str(cfg.get("device", "cpu")))
+    estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []))
+    res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),
+                   plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
+                   align=bool(cfg.get("align", True)))
+    print(f"results in {out}")
+    print_table(res)
+    return res

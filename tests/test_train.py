@@ -1,0 +1,151 @@
+"""Training glue: Hydra entry (compose API) -> checkpoints, resume, determinism, config errors,
+checkpoint layout checks, atomic saves; DDP with 2 CPU processes (slow)."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigAttributeError
+
+from tcn_ahrs.checkpoint import CheckpointError, atomic_save, check_layout, load_checkpoint, model_from_checkpoint
+from tcn_ahrs.datasets.simulate import simulate
+from tcn_ahrs.estimators.learned import LearnedEstimator
+from tcn_ahrs.train import train_main
+
+REPO = Path(__file__).resolve().parents[1]
+CONF = REPO / "conf"
+TINY = ["data=generic", "train.epochs=2", "train.window=400", "train.stride=200", "train.batch_size=4",
+        "model.tcn.channels=[4,4,4,8]", "trainer.enable_progress_bar=false", "eval.plots=false",
+        "eval.trajectories=false", "eval.baselines=[]", "threads=1"]
+
+
+@pytest.fixture(scope="module")
+def seqs():
+    tr = [simulate(p, 20.0, 50.0, s) for s, p in enumerate(["slow_rotation", "walking"])]
+    va = [simulate("slow_rotation", 12.0, 50.0, 50)]
+    te = [simulate("walking", 12.0, 50.0, 60)]
+    return tr, va, te
+
+
+def _cfg(overrides):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+def _train(tmp, seqs, extra=()):
+    cfg = _cfg(TINY + [f"run_dir={tmp}"] + list(extra))
+    return train_main(cfg, *seqs)
+
+
+def test_tiny_run_writes_checkpoints_config_and_resumes(tmp_path, seqs):
+    run = tmp_path / "run"
+    res = _train(run, seqs)
+    ck = run / "checkpoints"
+    assert (ck / "last.ckpt").is_file() and (ck / "best.ckpt").is_file()
+    assert (run / "config_resolved.yaml").is_file()
+    assert "window: 400" in (run / "config_resolved.yaml").read_text()
+    assert res["results"] is not None and "TCN-ECF" in res["results"]["methods"]
+    last = load_checkpoint(ck / "last.ckpt")
+    assert last["epoch"] == 1 and last["tcn_ahrs"]["layout"]["axes"] == 9
+    assert not list(ck.glob("*.tmp"))  # no leftovers of the atomic writes
+    # resume with one override: continues from last.ckpt to epoch 3
+    _train(run, seqs, ["resume=true", "train.epochs=3"])
+    assert load_checkpoint(ck / "last.ckpt")["epoch"] == 2
+    # explicit ckpt_path into a fresh run dir
+    _train(tmp_path / "run2", seqs, [f"ckpt_path={ck / 'last.ckpt'}", "train.epochs=4"])
+    assert load_checkpoint(tmp_path / "run2" / "checkpoints" / "last.ckpt")["epoch"] == 3
+    # the learned estimator runs the checkpoint; signals are there
+    est = LearnedEstimator(ck / "best.ckpt")
+    out = est.run(seqs[2][0], seqs[2][0].quat[0])
+    n = len(seqs[2][0])
+    assert out.quat.shape == (n, 4) and np.allclose(out.quat[0], seqs[2][0].quat[0], atol=1e-6)
+    for k in ("gyro_correction", "gyro_bias", "acc_error", "mag_error"):
+        assert out.signals[k].shape == (n, 3)
+
+
+def test_training_is_deterministic(tmp_path, seqs):
+    _train(tmp_path / "a", seqs, ["train.epochs=1"])
+    _train(tmp_path / "b", seqs, ["train.epochs=1"])
+    a = load_checkpoint(tmp_path / "a" / "checkpoints" / "last.ckpt")["state_dict"]
+    b = load_checkpoint(tmp_path / "b" / "checkpoints" / "last.ckpt")["state_dict"]
+    assert a.keys() == b.keys()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert a["model.calibration.gyro_error_net.out.weight"].abs().sum() > 0  # it did train
+
+
+def test_misspelt_config_keys_raise():
+    with pytest.raises(ConfigCompositionException):
+        _cfg(["train.lr2=0.1"])
+    with pytest.raises(ConfigCompositionException):
+        _cfg(["model.tcn.kernal_size=3"])
+    with pytest.raises(ConfigCompositionException):
+        _cfg(["trainr=gpu"])
+    cfg = _cfg(["data=generic"])
+    with pytest.raises(ConfigAttributeError):
+        cfg.train.learning_rate  # struct mode: reading a missing key is an error too
+
+
+def test_six_axis_checkpoint_refused_by_nine_axis_data(tmp_path, seqs):
+    _train(tmp_path / "r6", seqs, ["model=ahrs6", "train.epochs=1"])
+    path = tmp_path / "r6" / "checkpoints" / "last.ckpt"
+    ck = load_checkpoint(path)
+    assert ck["tcn_ahrs"]["layout"]["axes"] == 6
+    check_layout(ck, 6, path)
+    with pytest.raises(CheckpointError, match=r"ahrs6.*6-axis.*data provides 9 axes.*data.axes=6"):
+        check_layout(ck, 9, path)
+    with pytest.raises(CheckpointError, match="9 axes"):
+        model_from_checkpoint(path, axes=9)
+    # the evaluation CLI refuses it too
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"ckpt={path}", "data=generic",
+                        f"data.root={tmp_path}", f"out={tmp_path / 'ev'}"], cwd=REPO,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0 and "6-axis input" in r.stderr
+
+
+def test_atomic_save_keeps_old_file_on_failure(tmp_path, monkeypatch):
+    p = tmp_path / "last.ckpt"
+    atomic_save({"a": torch.ones(2)}, p)
+
+    def broken(obj, fh, *a, **k):
+        fh.write(b"partial")
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken)
+    with pytest.raises(RuntimeError, match="disk full"):
+        atomic_save({"a": torch.zeros(2)}, p)
+    monkeypatch.undo()
+    assert torch.equal(load_checkpoint(p)["a"], torch.ones(2))
+    assert [f.name for f in tmp_path.iterdir()] == ["last.ckpt"]
+
+
+class _Arbitrary:
+    pass
+
+
+def test_unsafe_checkpoint_is_refused(tmp_path):
+    p = tmp_path / "evil.ckpt"
+    torch.save({"x": _Arbitrary()}, p)  # loading it would run pickle's class lookup
+    with pytest.raises(CheckpointError, match="weights_only"):
+        load_checkpoint(p)
+
+
+@pytest.mark.slow
+def test_ddp_two_cpu_processes(tmp_path):
+    """trainer=ddp with 2 CPU processes (gloo), through the real script."""
+    if sys.platform == "win32":
+        pytest.skip("gloo DDP test runs on Linux/macOS")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    cmd = [sys.executable, "scripts/train.py", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2",
+           "data=simulated", "data.rate=50", "data.splits.train.duration=20", "data.splits.val.duration=10",
+           "data.splits.train.count=2", "data.splits.val.count=1", "data.splits.test.count=1",
+           "data.splits.test.duration=10", f"run_dir={tmp_path}"] + [
+        o for o in TINY if not o.startswith("data=")] + ["train.epochs=1"]
+    r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=85, env=env)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert (tmp_path / "checkpoints" / "last.ckpt").is_file()
+    assert "Average" in r.stdout
