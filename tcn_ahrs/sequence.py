@@ -221,12 +221,13 @@ def _rest_samples(accel: np.ndarray, rate: float, window_s: float = 0.5, tol: fl
     mean = (c[w:] - c[:-w]) / w
     var = (c2[w:] - c2[:-w]) / w - mean**2
     still = np.sqrt(np.maximum(var, 0).sum(axis=1)) < tol * GRAVITY * 0.2
-    out = np.zeros(n, dtype=bool)
-    idx = np.nonzero(still)[0]
-    for k in idx[:: max(1, w // 2)]:  # mark the whole window
-        out[k:k + w] = True
-    out[idx + w // 2] = True
-    return out
+    # A sample is at rest if any still window covers it: dilate the window starts by w
+    # with a cumulative sum (no Python loop).
+    starts = np.concatenate([still.astype(np.int64), np.zeros(w, dtype=np.int64)])
+    c_start = np.concatenate([[0], np.cumsum(starts)])
+    k = np.arange(n)
+    covered = c_start[k + 1] - c_start[np.maximum(k - w + 1, 0)]
+    return covered > 0
 
 
 def rest_mask(seq: ImuSequence, window_s: float = 0.5) -> np.ndarray:
