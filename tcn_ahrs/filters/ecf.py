@@ -1,0 +1,105 @@
+"""Closed-loop Extended Complementary Filter (ECF), paper Section 2 (Eqs. 4-8).
+
+Paper (tcn-ecf-ahrs, NED, accelerometer read as gravity) -> this code (ENU, specific force):
+
+* Eq. 4 (discrete, as Eq. 3): ``C_k = C_{k-1} exp([(omega_k + K e_k) x] dt_k)``.
+* Eq. 5: ``e_a = a/|a| x (C_{k-1}^T up)`` with ``up = [0, 0, 1]``. At rest the specific force
+  points up, so measured and predicted vectors both point up and ``e_a`` is the rotation
+  (body frame) that turns the prediction toward the measurement: the same sign as
+  Mahony's ``v_meas x v_pred`` (the correction ``omega + K e`` rotates the estimate so the
+  predicted vector follows the measured one; tested in ``tests/test_filters.py``).
+* Eq. 6: the paper uses ``(a x m)/|a x m|`` vs ``[0, 1, 0]`` (east in NED, with ``a`` pointing
+  down). In ENU with ``a`` pointing up, east is ``north x up``, i.e. the measured east
+  direction is ``(m x a)/|m x a|`` and the reference ``C^T [1, 0, 0]``:
+  ``e_m = (m x a)/|m x a| x (C_{k-1}^T east)``. Using the cross product with ``a`` removes the
+  vertical (dip) component of the field, so ``e_m`` only corrects heading (to first order).
+* Eq. 7: ``e = e_a + e_m`` if ``| |a| - g | < a_min`` and ``m_min < |m| < m_max``;
+  ``e = e_a`` if only the accelerometer test passes; ``e = 0`` otherwise.
+* Eq. 8: ``K`` ramps linearly from ``K_init`` at t = 0 to ``K_norm`` at ``t_init``.
+
+The magnetometer reference is magnetic east; see :func:`tcn_ahrs.filters.common.magnetic_from_nav`
+for running in another heading reference.
+"""
+from __future__ import annotations
+
+from typing import Dict, Optional
+
+import torch
+from torch import Tensor
+
+from .. import so3
+from ..conventions import GRAVITY
+from .common import elapsed, flatten_batch, gain_schedule, normalize, to_tensor, unflatten
+
+
+def ecf(
+    gyro: Tensor,
+    accel: Tensor,
+    dt: Tensor,
+    q0: Tensor,
+    mag: Optional[Tensor] = None,
+    k_norm=0.5,
+    k_init=10.0,
+    t_init=3.0,
+    a_min=1.0,
+    m_min=20.0,
+    m_max=70.0,
+    gravity: float = GRAVITY,
+) -> Dict[str, Tensor]:
+    """Run the closed-loop ECF.
+
+    Args:
+        gyro:  (..., N, 3) angular rate, body, rad/s. Sample k moves the attitude from k-1 to k.
+        accel: (..., N, 3) specific force, body, m/s^2.
+        dt:    (..., N) time step before each sample, s (``dt[..., 0]`` unused).
+        q0:    (..., 4) attitude at sample 0 (nav_from_body, w,x,y,z, magnetic ENU when mag is used).
+        mag:   (..., N, 3) magnetic field, body, uT, or None (6-axis: only ``e_a``).
+        k_norm:  gain after the initialisation, 1/s (Eq. 8 ``K_norm``); default 0.5.
+        k_init:  gain at t = 0, 1/s (``K_init``); default 10.
+        t_init:  length of the gain ramp, s; default 3.
+        a_min:   accelerometer rejection threshold on ``| |a| - g |``, m/s^2 (Eq. 7); default 1.0.
+        m_min, m_max: accepted magnetic field norm range, uT (Eq. 7); default 20..70.
+        gravity: ``|g|`` in m/s^2.
+        Parameters broadcast as batch tensors (scalars, (P,), ...).
+    Returns:
+        ``quat`` (..., N, 4); ``acc_used``, ``mag_used`` (..., N) bool (Eq. 7 decisions);
+        ``gain`` (..., N) the scheduled K (1/s).
+    """
+    dtype = gyro.dtype if isinstance(gyro, Tensor) and gyro.is_floating_point() else torch.float64
+    dev = gyro.device if isinstance(gyro, Tensor) else None
+    T = lambda x: to_tensor(x, dtype, dev)  # noqa: E731
+    gyro, accel, dt, q0 = T(gyro), T(accel), T(dt), T(q0)
+    mag = None if mag is None else T(mag)
+    params = [T(p) for p in (k_norm, k_init, t_init, a_min, m_min, m_max)]
+    batch, flat = flatten_batch(
+        [(gyro, 2), (accel, 2), (dt, 1), (q0, 1), (mag, 2)] + [(p, 0) for p in params]
+    )
+    gyro, accel, dt, q0, mag, k_norm, k_init, t_init, a_min, m_min, m_max = flat
+    n = gyro.shape[1]
+
+    # Everything that depends on the measurements only is computed once, vectorised.
+    a_norm = torch.linalg.vector_norm(accel, dim=-1)
+    a_hat = normalize(accel)
+    acc_ok = (a_norm - gravity).abs() < a_min[:, None]  # Eq. 7, first test
+    gain = gain_schedule(elapsed(dt), k_norm, k_init, t_init)  # Eq. 8
+    w_acc = gain * acc_ok
+    if mag is not None:
+        m_norm = torch.linalg.vector_norm(mag, dim=-1)
+        mag_ok = acc_ok & (m_norm > m_min[:, None]) & (m_norm < m_max[:, None])
+        east_b = normalize(torch.cross(mag, accel, dim=-1))  # Eq. 6 in ENU: (m x a)/|m x a|
+        w_mag = gain * mag_ok
+    else:
+        mag_ok = torch.zeros_like(acc_ok)
+
+    r = so3.quat_to_matrix(q0)
+    out = [r]
+    for k in range(1, n):
+        # C^T up is the third row of C, C^T east the first row.
+        e = w_acc[:, k, None] * torch.cross(a_hat[:, k], r[:, 2, :], dim=-1)  # Eq. 5
+        if mag is not None:
+            e = e + w_mag[:, k, None] * torch.cross(east_b[:, k], r[:, 0, :], dim=-1)  # Eq. 6
+        r = r @ so3.exp((gyro[:, k] + e) * dt[:, k, None])  # Eq. 4 discretised as Eq. 3
+        out.append(r)
+    quat = so3.matrix_to_quat(torch.stack(out, 1))
+    res = {"quat": quat, "acc_used": acc_ok, "mag_used": mag_ok, "gain": gain}
+    return {k: unflatten(v, batch) for k, v in res.items()}

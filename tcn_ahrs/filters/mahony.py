@@ -1,0 +1,93 @@
+"""Mahony's explicit complementary filter with integral gyro-bias estimation.
+
+R. Mahony, T. Hamel, J.-M. Pflimlin, "Nonlinear Complementary Filters on the Special
+Orthogonal Group", IEEE TAC 53(5), 2008, Eq. 32 (explicit CF), written as in the PyPI
+``ahrs`` package (``ahrs.filters.Mahony``, v0.4.0), whose navigation frame for Mahony is
+ENU-like (x east, y north, z up; it compares the normalised specific force with
+``R^T [0, 0, 1]`` and the field with ``R^T [0, |h_xy|, h_z]``, north along +y) - the same as ours:
+
+* ``v_a = R^T up``, ``h = R m^``, ``v_m = R^T [0, |h_xy|, h_z] / |.|``
+  (the reference field is the measured one, rotated to nav and turned to magnetic north,
+  so the magnetometer's dip never affects the tilt),
+* ``omega_mes = a^ x v_a + m^ x v_m``   (measured x predicted, as ECF Eq. 5),
+* ``b_k = b_{k-1} - k_I omega_mes dt``  (integral term; bias updated before it is used),
+* ``Omega = omega - b_k + k_P omega_mes``,
+* ``compat=True``: ``q_k = normalize(q + 0.5 q (x) [0, Omega] dt)`` (ahrs, first-order);
+  ``compat=False`` (default): ``q_k = q (x) exp(Omega dt)`` (exact for a constant rate).
+
+Units: ``k_P`` 1/s, ``k_I`` 1/s^2, so the filter behaves the same at any sampling rate.
+Quirk of ahrs not reproduced: it skips a sample whose gyro reading is exactly zero.
+"""
+from __future__ import annotations
+
+from typing import Dict, Optional
+
+import torch
+from torch import Tensor
+
+from .. import so3
+from .common import flatten_batch, normalize, to_tensor, unflatten
+
+
+def mahony(
+    gyro: Tensor,
+    accel: Tensor,
+    dt: Tensor,
+    q0: Tensor,
+    mag: Optional[Tensor] = None,
+    k_p=1.0,
+    k_i=0.3,
+    bias0: Optional[Tensor] = None,
+    compat: bool = False,
+) -> Dict[str, Tensor]:
+    """Run the Mahony filter.
+
+    Args:
+        gyro, accel, mag: (..., N, 3) rad/s, m/s^2, uT (body); ``mag=None`` for 6-axis.
+        dt:   (..., N) s, time step before each sample (``dt[..., 0]`` unused).
+        q0:   (..., 4) initial nav_from_body (magnetic ENU when mag is used).
+        k_p:  proportional gain, 1/s (default 1.0, as ahrs).
+        k_i:  integral gain, 1/s^2 (default 0.3, as ahrs); 0 disables bias estimation.
+        bias0: (..., 3) initial gyro bias, rad/s (default 0).
+        compat: integrate like ahrs (first-order + normalisation) instead of the exponential map.
+    Returns:
+        ``quat`` (..., N, 4); ``gyro_bias`` (..., N, 3) rad/s (the bias estimate after sample k).
+    """
+    dtype = gyro.dtype if isinstance(gyro, Tensor) and gyro.is_floating_point() else torch.float64
+    dev = gyro.device if isinstance(gyro, Tensor) else None
+    T = lambda x: to_tensor(x, dtype, dev)  # noqa: E731
+    gyro, accel, dt, q0 = T(gyro), T(accel), T(dt), T(q0)
+    mag = None if mag is None else T(mag)
+    bias0 = torch.zeros(3, dtype=dtype, device=dev) if bias0 is None else T(bias0)
+    batch, flat = flatten_batch(
+        [(gyro, 2), (accel, 2), (dt, 1), (q0, 1), (mag, 2), (bias0, 1), (T(k_p), 0), (T(k_i), 0)]
+    )
+    gyro, accel, dt, q0, mag, b, k_p, k_i = flat
+    n = gyro.shape[1]
+    a_hat = normalize(accel)
+    m_hat = None if mag is None else normalize(mag)
+    k_p, k_i = k_p[:, None], k_i[:, None]
+
+    q = so3.quat_normalize(q0)
+    b = b.clone()
+    qs, bs = [q], [b]
+    zero = torch.zeros_like(q[:, :1])
+    for k in range(1, n):
+        r = so3.quat_to_matrix(q)
+        w = torch.cross(a_hat[:, k], r[:, 2, :], dim=-1)  # a^ x R^T up
+        if m_hat is not None:
+            h = (r @ m_hat[:, k, :, None])[..., 0]  # field in nav
+            ref = torch.stack([torch.zeros_like(h[:, 0]), torch.linalg.vector_norm(h[:, :2], dim=-1), h[:, 2]], -1)
+            v_m = normalize((r.transpose(-1, -2) @ ref[..., None])[..., 0])
+            w = w + torch.cross(m_hat[:, k], v_m, dim=-1)
+        d = dt[:, k, None]
+        b = b - k_i * w * d
+        omega = gyro[:, k] - b + k_p * w
+        if compat:
+            q = so3.quat_normalize(q + 0.5 * so3.quat_mul(q, torch.cat([zero, omega], -1)) * d)
+        else:
+            q = so3.quat_normalize(so3.quat_mul(q, so3.quat_exp(omega * d)))
+        qs.append(q)
+        bs.append(b)
+    res = {"quat": torch.stack(qs, 1), "gyro_bias": torch.stack(bs, 1)}
+    return {k: unflatten(v, batch) for k, v in res.items()}
