@@ -1,0 +1,48 @@
+#!/usr/bin/env python
+"""Export a trained checkpoint as self-contained TorchScript (batch and/or streaming).
+
+    python scripts/export.py ckpt=runs/simulated/<run>/checkpoints/best.ckpt out=exports/ahrs9.pt
+    python scripts/export.py ckpt=PATH out=FILE.pt mode=streaming rate=200
+
+Loading the result needs only torch:
+    m = torch.jit.load("FILE.pt");  quat, omega = m(imu, dt, q0);  print(m.metadata())
+    s = torch.jit.load("FILE_streaming.pt");  s.reset(q0);  quat, omega = s.step(sample, dt)
+
+Configuration: conf/export.yaml; the contract is in tcn_ahrs/export.py's docstring.
+"""
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+KEYS = {"ckpt", "out", "mode", "rate", "net_dtype"}
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="export")
+def main(cfg: DictConfig) -> None:
+    from tcn_ahrs.checkpoint import CheckpointError
+    from tcn_ahrs.export import export_checkpoint, read_metadata
+
+    unknown = set(cfg) - KEYS
+    if unknown:
+        sys.exit(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")
+    if not cfg.ckpt or not cfg.out:
+        sys.exit("export: pass ckpt=PATH (a checkpoint written by scripts/train.py) and out=FILE.pt")
+    try:
+        written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
+                                    rate_hz=None if cfg.rate is None else float(cfg.rate),
+                                    net_dtype=str(cfg.net_dtype))
+    except (CheckpointError, ValueError) as e:
+        sys.exit(f"export: {e}")
+    for mode, path in written.items():
+        md = read_metadata(path)
+        print(f"{mode}: {path}  ({md['variant']}, {md['axes']}-axis, preintegration {md['preintegration']}, "
+              f"receptive field {md['receptive_field']}, rate {md['rate_hz']} Hz, "
+              f"checkpoint sha256 {md['checkpoint_sha256'][:12]}...)")
+
+
+if __name__ == "__main__":
+    main()
