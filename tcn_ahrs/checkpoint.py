@@ -66,8 +66,12 @@ class AtomicCheckpointIO(TorchCheckpointIO):
         return load_checkpoint(path, map_location=map_location or "cpu")
 
 
-def layout_meta(model_cfg: Mapping, axes: int, data_name: str = "") -> Dict[str, Any]:
-    return {"model": dict(model_cfg), "layout": {"axes": int(axes), "channels": list(CHANNELS[int(axes)])},
+def layout_meta(model_cfg: Mapping, axes: int, data_name: str = "",
+                rate_hz: Optional[float] = None) -> Dict[str, Any]:
+    """The record stored with every checkpoint: model config, input layout, training data and rate."""
+    return {"model": dict(model_cfg),
+            "layout": {"axes": int(axes), "channels": list(CHANNELS[int(axes)]),
+                       "rate_hz": None if rate_hz is None else float(rate_hz)},
             "data": str(data_name)}
 
 

@@ -49,7 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import __version__, so3
-from .model.ecf import previous_attitude
+from .model.ecf import acc_error, mag_error, previous_attitude
 from .model.tcn import TCN, CausalConv1d, ConstantError
 
 MODES = ("batch", "streaming", "both")
@@ -59,22 +59,6 @@ CHANNELS = {6: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"],
 
 class ExportError(ValueError):
     """The model cannot be exported (a structure this exporter does not know)."""
-
-
-# Eqs. 23-24 as in tcn_ahrs.model.ecf (acc_error, mag_error), restated here because those use a
-# module-level epsilon that TorchScript cannot capture; the parity tests keep the two equal.
-def _unit(v: Tensor) -> Tensor:
-    return v / torch.linalg.norm(v, dim=-1, keepdim=True).clamp_min(1e-9)
-
-
-def _acc_error(acc: Tensor, nav_from_body: Tensor) -> Tensor:
-    """Eq. 23: ``unit(ĝ) × (C^T e_up)`` (C^T e_up = third row of C). (N, 3), (N, 3, 3) -> (N, 3)."""
-    return torch.cross(_unit(acc), nav_from_body[..., 2, :], dim=-1)
-
-
-def _mag_error(mag: Tensor, acc_raw: Tensor, nav_from_body: Tensor) -> Tensor:
-    """Eq. 24: ``unit(b̂ × g'_raw) × (C^T e_east)`` (C^T e_east = first row of C)."""
-    return torch.cross(_unit(torch.cross(mag, acc_raw, dim=-1)), nav_from_body[..., 0, :], dim=-1)
 
 
 # ============================================================ model -> fused parameters
@@ -294,9 +278,9 @@ class BatchAHRS(nn.Module):
     def _correction(self, c_prev: Tensor, acc: Tensor, mag: Tensor, acc_raw: Tensor) -> Tensor:
         corr = torch.zeros_like(acc)
         if self.use_acc:
-            corr = corr + self.acc_gain * _acc_error(acc, c_prev)
+            corr = corr + self.acc_gain * acc_error(acc, c_prev)
         if self.use_mag:
-            corr = corr + self.mag_gain * _mag_error(mag, acc_raw, c_prev)
+            corr = corr + self.mag_gain * mag_error(mag, acc_raw, c_prev)
         return corr
 
     def corrected_rate(self, imu: Tensor, dt: Tensor, r0: Tensor) -> Tensor:

@@ -39,7 +39,8 @@ class AHRSModule(pl.LightningModule):
     def __init__(self, model_cfg: Dict[str, Any], axes: int, lr: float = 0.01,
                  weight_decay: float = 0.1, epochs: int = 100, window: int = 2000,
                  loss_js: List[int] = (16, 32), huber_delta: float = 0.005,
-                 noise: Optional[Dict[str, float]] = None, data_name: str = ""):
+                 noise: Optional[Dict[str, float]] = None, data_name: str = "",
+                 rate_hz: Optional[float] = None):
         super().__init__()
         self.save_hyperparameters()
         self.model = LearnedAHRS.from_config(model_cfg, axes=axes)
@@ -91,7 +92,8 @@ class AHRSModule(pl.LightningModule):
     def on_save_checkpoint(self, checkpoint: Dict[str, Any]) -> None:
         cfg = dict(self.hparams.model_cfg)
         cfg["axes"] = self.model.axes
-        checkpoint["tcn_ahrs"] = layout_meta(cfg, self.model.axes, self.hparams.data_name)
+        checkpoint["tcn_ahrs"] = layout_meta(cfg, self.model.axes, self.hparams.data_name,
+                                             self.hparams.get("rate_hz"))
 
 
 # ====================================================================== helpers
@@ -117,29 +119,11 @@ def model_axes(cfg) -> int:
 
 
 def baseline_estimators(names, rate: Optional[float] = None) -> list:
-    """Classical estimators by short name (``raw``, ``ecf``, ``mahony``, ``madgwick``, ...);
-    unavailable ones are skipped with a warning."""
-    from . import estimators as est_pkg
+    """Baselines by short name; moved to :func:`tcn_ahrs.compare.baseline_estimators` (the one
+    method registry), kept here as a thin alias."""
+    from .compare import baseline_estimators as _baselines
 
-    out = []
-    for n in names or []:
-        n = str(n)
-        try:
-            if n == "raw":
-                from .estimators.raw import RawIntegration
-                out.append(RawIntegration())
-                continue
-            build = getattr(est_pkg, "build_estimator", None)
-            if build is not None:
-                out.append(build(n))
-                continue
-            from .estimators import classical  # noqa: F401  (helper-4's module)
-            cls = {"ecf": "ClosedLoopECF", "mahony": "Mahony", "madgwick": "Madgwick",
-                   "eskf": "ESKF", "robust": "RobustESKF"}.get(n, n)
-            out.append(getattr(classical, cls)())
-        except Exception as e:  # noqa: BLE001  a missing baseline must not lose a trained model
-            warnings.warn(f"baseline {n!r} unavailable, skipped: {type(e).__name__}: {e}")
-    return out
+    return _baselines(names, rate)
 
 
 def find_resume_checkpoint(run_dir: Path) -> Path:
@@ -215,7 +199,9 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
     module = AHRSModule(model_cfg, axes, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay),
                         epochs=int(cfg.train.epochs), window=dm.window, loss_js=list(cfg.train.loss_js),
                         huber_delta=float(cfg.train.huber_delta), noise=_plain(cfg.train.noise),
-                        data_name=str(cfg.data.name))
+                        data_name=str(cfg.data.name),
+                        # the rate the model learned at (its TCN's time scale), for deployment
+                        rate_hz=float(np.median([s.rate for s in dm.train_seqs])))
     mean, std = dm.statistics()
     module.model.calibration.set_input_stats(mean, std)
     monitor = str(cfg.train.monitor) if dm.val_store is not None else "train/loss_epoch"

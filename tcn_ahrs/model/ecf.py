@@ -34,12 +34,13 @@ from torch import Tensor, nn
 
 from .. import so3
 
-_EPS = 1e-9
 PREINTEGRATIONS = ("raw", "denoised", "two_pass")
 
 
 def _unit(v: Tensor) -> Tensor:
-    return v / torch.linalg.norm(v, dim=-1, keepdim=True).clamp_min(_EPS)
+    # epsilon written inline: TorchScript (the exported modules reuse these functions) cannot
+    # capture module-level floats
+    return v / torch.linalg.norm(v, dim=-1, keepdim=True).clamp_min(1e-9)
 
 
 def acc_error(acc: Tensor, nav_from_body: Tensor) -> Tensor:
