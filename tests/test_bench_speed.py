@@ -1,0 +1,89 @@
+"""Speed benchmark smoke test: tiny sizes, the expected fields and files; no timing assertions."""
+import json
+import math
+
+import pytest
+import torch
+
+from tcn_ahrs import bench_speed
+from tcn_ahrs.losses import increment_loss
+
+
+def _finite_pos(x):
+    return isinstance(x, float) and math.isfinite(x) and x > 0
+
+
+def test_quick_run_fields_and_files(tmp_path):
+    cfg = {"quick": True, "device": "cpu", "out": str(tmp_path / "bench"),
+           "speed": {"train": {"window": 64, "steps": 1, "warmup": 0},
+                     "inference": {"samples": 200, "repeats": 1, "warmup": 0},
+                     "streaming": {"samples": 20, "warmup": 2, "run_samples": 20},
+                     "filters": {"samples": 50, "batches": [1, 3], "peers": ["vqf", "imufusion"]}}}
+    res = bench_speed.main(cfg)
+    env = res["environment"]
+    for k in ("torch", "numpy", "cpu", "cpu_count", "torch_threads", "device", "gpu", "loadavg_start"):
+        assert k in env
+    assert env["device"] == "cpu"
+
+    tr = res["train"]
+    assert tr["baseline"] == "eager"
+    assert [r["variant"] for r in tr["rows"]] == ["eager", "loss_fp32"]
+    for r in tr["rows"]:
+        assert _finite_pos(r["samples_per_s"]) and _finite_pos(r["epoch_s"]) and _finite_pos(r["schedule_h"])
+        assert r["schedule_h"] == pytest.approx(r["epoch_s"] * tr["epochs"] / 3600)
+    assert tr["rows"][0]["vs_baseline"] == pytest.approx(1.0)
+    assert tr["epoch"]["source"].startswith("constant")  # quick: no data loading
+    assert any("CUDA" in n for n in tr["notes"])
+
+    inf = res["inference"]
+    names = [r["name"] for r in inf["rows"]]
+    assert any(n.startswith("eager") for n in names) and any(n.startswith("TorchScript batch") for n in names)
+    assert all(_finite_pos(r["median_ms"]) for r in inf["rows"])
+    assert isinstance(inf["goal_met"], bool)
+
+    st = res["streaming"]
+    step = [r for r in st["rows"] if r["name"].startswith("TorchScript streaming step")]
+    assert len(step) == 1 and _finite_pos(step[0]["samples_per_s"]) and step[0]["p99_us"] >= step[0]["median_us"]
+
+    fi = res["filters"]
+    got = {(r["name"], r.get("batch")) for r in fi["rows"] if "samples_per_s" in r}
+    for f in ("ecf", "mahony", "eskf"):
+        assert (f"tcn_ahrs.filters.{f}", 1) in got and (f"tcn_ahrs.filters.{f}", 3) in got
+
+    out = tmp_path / "bench"
+    data = json.loads((out / "speed.json").read_text())
+    assert set(data) >= {"environment", "config", "train", "inference", "streaming", "filters", "total_s"}
+    md = (out / "speed.md").read_text()
+    for head in ("## Training step", "## Batch inference", "## Streaming", "## Classical filters"):
+        assert head in md
+
+
+def test_config_errors():
+    with pytest.raises(ValueError, match="speed.train.batchsize"):
+        bench_speed.resolve_config({"speed": {"train": {"batchsize": 4}}})
+    with pytest.raises(ValueError, match="sections"):
+        bench_speed.resolve_config({"speed": {"sections": ["trian"]}})
+    with pytest.raises(ValueError, match="device"):
+        bench_speed.resolve_config({"device": "tpu"})
+    p = bench_speed.resolve_config({"quick": True, "speed": {"train": {"batch_size": 3}}})
+    assert p["train"]["batch_size"] == 3 and p["train"]["window"] == bench_speed.QUICK["train"]["window"]
+
+
+def test_static_loss_equals_increment_loss():
+    """The CUDA-graph variant's sync-free loss is the project's loss (with and without gaps)."""
+    d = bench_speed.synthetic_imu(2, 120, 9, 100.0, seed=3)
+    omega = d["imu"][..., 0:3] + 0.05 * torch.randn(2, 120, 3, generator=torch.Generator().manual_seed(0))
+    valid = d["valid"].clone()
+    for v in (valid, valid.index_fill(1, torch.arange(40, 50), False)):
+        ref = increment_loss(omega, d["dt"], d["rot"], v, (16, 32), 0.005)
+        got = bench_speed.static_increment_loss(omega, d["dt"], d["rot"], v, (16, 32), 0.005)
+        assert float(ref) > 0
+        assert float(got) == pytest.approx(float(ref), rel=1e-6)
+
+
+def test_broad_epoch_constant_fallback():
+    p = dict(bench_speed.DEFAULTS["train"], data_config=None)
+    e = bench_speed.broad_epoch(p)
+    # 16 recordings of ~37.6 k samples: (37573 - 3000) // 100 + 1 = 346 windows each
+    assert e["windows"] == 16 * 346 and e["steps"] == math.ceil(16 * 346 / 16)
+    assert "constant" in e["source"]
