@@ -113,3 +113,17 @@ def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") 
         raise CheckpointError(f"{path}: weights do not match the model config stored with them: {e}") from e
     model.eval()
     return model
+
+
+def release_checkpoint(src, dst) -> Dict[str, Any]:
+    """Write the small, inference-only copy of a training checkpoint that ``checkpoints/``
+    ships: the model weights (incl. the input statistics and BatchNorm buffers) and the
+    ``tcn_ahrs`` record, without optimiser state (which would triple the size). The result
+    loads with :func:`model_from_checkpoint` like the original. Returns the record."""
+    ckpt = load_checkpoint(src)
+    meta = checkpoint_meta(ckpt, src)
+    model = model_from_checkpoint(src)  # validates that the weights fit the stored config
+    slim = {"state_dict": {f"model.{k}": v.clone() for k, v in model.state_dict().items()},
+            "tcn_ahrs": meta, "epoch": ckpt.get("epoch"), "global_step": ckpt.get("global_step")}
+    atomic_save(slim, dst)
+    return meta
