@@ -29,11 +29,20 @@ the string returned by the module's ``metadata()`` method):
   normalisation (included in the module), the tcn_ahrs version, the checkpoint's sha256.
 
 Numerics: the TCN runs in float32 (``net_dtype``; BatchNorm folded into the convolutions,
-dropout off), the calibration matrices, the ECF and the attitude integration in float64.
-Measured (tests/test_export.py, 2000-3000 samples, random non-trivial weights): batch vs
-streaming <= 6e-9 rad; either vs the eager float32 model <= 3.3e-6 rad (the eager model's own
-float32 ECF pre-integration dominates); with ``net_dtype=float64`` both equal the eager model
-run in float64 to < 1e-10 rad.
+dropout off), the calibration matrices, the ECF and the attitude integration in float64
+(quaternions, blocked prefix-product scan). Measured (tests/test_export.py, 2000 samples,
+random non-trivial weights): batch vs streaming <= 9e-9 rad; either vs the eager float32 model
+<= 2.6e-6 rad (the eager model's own float32 ECF pre-integration dominates); with
+``net_dtype=float64`` both equal the eager model run in float64 to < 1e-10 rad.
+``net_dtype=bfloat16`` (batch module only, opt-in: ``export_checkpoint(..., mode="batch",
+net_dtype="bfloat16")``) runs the convolutions in bfloat16 (~2x faster TCN on AVX512-BF16
+CPUs) and is NOT within that parity: 2e-4 to 1.4e-3 rad over 60 s against the eager model
+with the test's random weights (docs/performance.md).
+
+Exported modules are frozen (:func:`torch.jit.freeze`, public methods kept): flags and
+weights become constants. The streaming step folds the input normalisation into the first
+layer and computes GELU as ``u (1 + erf(u))`` on sqrt(1/2)-scaled pre-activations (see
+:meth:`StreamingAHRS._gelu_scaled`), identical math with fewer TorchScript ops.
 """
 # No `from __future__ import annotations`: TorchScript reads the class-level attribute
 # annotations (List[Tensor], ...) as real types.
@@ -49,10 +58,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from . import __version__, so3
-from .model.ecf import acc_error, mag_error, previous_attitude
 from .model.tcn import TCN, CausalConv1d, ConstantError
 
 MODES = ("batch", "streaming", "both")
+NET_DTYPES = (torch.float32, torch.float64, torch.bfloat16)
+_SQRT_HALF = math.sqrt(0.5)
 CHANNELS = {6: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"],
             9: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"]}
 
@@ -177,6 +187,94 @@ def fuse_model(model: nn.Module) -> Dict[str, Any]:
     return fused
 
 
+# ============================================================ float64 quaternion scans
+def _hamilton_table() -> Tensor:
+    """(16, 4) float64: ``p ⊗ q = (p ⊗_outer q).reshape(16) @ table`` (row 4 i + j holds the
+    sign with which ``p_i q_j`` enters each component of the Hamilton product)."""
+    e = torch.eye(4, dtype=torch.float64)
+    return so3.quat_mul(e[:, None, :], e[None, :, :]).reshape(16, 4)
+
+
+def _qmul(a: Tensor, b: Tensor, table: Tensor) -> Tensor:
+    """Row-wise Hamilton product of (M, 4) quaternions: one outer product + one matmul."""
+    return torch.mm((a.unsqueeze(2) * b.unsqueeze(1)).reshape(-1, 16), table)
+
+
+def _cumprod_hillis_steele(q: Tensor, table: Tensor) -> Tensor:
+    """Inclusive prefix product of (N, 4) quaternions in ceil(log2 N) levels (O(N log N) work)."""
+    n = q.size(0)
+    p = q
+    d = 1
+    while d < n:
+        p = torch.cat([p[:d], _qmul(p[:-d], p[d:], table)], 0)
+        d *= 2
+    return p
+
+
+def quat_cumprod(q: Tensor, table: Tensor, block: int = 32) -> Tensor:
+    """Inclusive cumulative Hamilton product ``P_k = q_0 ⊗ ... ⊗ q_k`` of (N, 4) float64
+    quaternions (not renormalised: float64 round-off only; the caller normalises once).
+
+    Blocked scan, O(N) work: the sequence is cut into B blocks of ``block`` samples; (1) the
+    within-block prefixes of all blocks advance together, ``block - 1`` sequential products on
+    (B, 4) rows; (2) the block totals are scanned (Hillis-Steele, log2 B levels); (3) each block
+    is multiplied on the left by the product of all earlier blocks. A plain O(N log N)
+    Hillis-Steele scan over 6000 samples costs ~13 levels x N products, 3x3 matrices
+    (:func:`so3.cumprod_matrix`) ~4x more again; this is ~3 N products.
+    ``table`` = :func:`_hamilton_table`."""
+    n = q.size(0)
+    if n <= 2 * block:
+        return _cumprod_hillis_steele(q, table)
+    nb = (n + block - 1) // block
+    pad = nb * block - n
+    if pad > 0:  # identity quaternions at the end change no prefix
+        ident = torch.zeros(pad, 4, dtype=q.dtype, device=q.device)
+        ident[:, 0] = 1.0
+        q = torch.cat([q, ident], 0)
+    x = q.view(nb, block, 4).transpose(0, 1).contiguous()  # (block, B, 4): step j of every block
+    acc = x[0]
+    steps = [acc]
+    for j in range(1, block):
+        acc = _qmul(acc, x[j], table)
+        steps.append(acc)
+    within = torch.stack(steps, 0)  # (block, B, 4) within-block prefixes
+    before = _cumprod_hillis_steele(within[-1], table)[:-1]  # (B-1, 4): blocks 0..b-1
+    later = _qmul(before.unsqueeze(0).expand(block, nb - 1, 4).reshape(-1, 4),
+                  within[:, 1:].reshape(-1, 4), table).view(block, nb - 1, 4)
+    out = torch.cat([within[:, :1], later], 1).transpose(0, 1).reshape(nb * block, 4)
+    return out[:n]
+
+
+def quat_integrate(q0: Tensor, omega: Tensor, dt: Tensor, table: Tensor) -> Tensor:
+    """Eq. 3 with quaternions: ``q_k = q_0 ⊗ exp(ω_1 dt_1) ⊗ ... ⊗ exp(ω_k dt_k)`` (unnormalised
+    by at most float64 round-off). q0 (4,), omega (N, 3), dt (N,) -> (N, 4) with entry 0 = q0."""
+    inc = so3.quat_exp(omega[1:] * dt[1:, None])
+    return quat_cumprod(torch.cat([q0.unsqueeze(0), inc], 0), table)
+
+
+def _rows_up_east(q: Tensor) -> Tuple[Tensor, Tensor]:
+    """Rows of C(q) (nav_from_body, (N, 4) unit quaternions) the ECF uses: ``C^T e_up`` (third
+    row) and ``C^T e_east`` (first row), each (N, 3)."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    up = torch.stack([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)], 1)
+    east = torch.stack([1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)], 1)
+    return up, east
+
+
+def _unit_rows(v: Tensor) -> Tensor:
+    return v / torch.linalg.norm(v, dim=1, keepdim=True).clamp_min(1e-9)
+
+
+def acc_error_rows(acc: Tensor, up: Tensor) -> Tensor:
+    """Eq. 23 (as :func:`tcn_ahrs.model.ecf.acc_error`): ``unit(ĝ) × (C̃^T e_up)``, (N, 3)."""
+    return torch.linalg.cross(_unit_rows(acc), up, dim=1)
+
+
+def mag_error_rows(mag: Tensor, acc_raw: Tensor, east: Tensor) -> Tensor:
+    """Eq. 24 (as :func:`tcn_ahrs.model.ecf.mag_error`): ``unit(b̂ × g') × (C̃^T e_east)``."""
+    return torch.linalg.cross(_unit_rows(torch.linalg.cross(mag, acc_raw, dim=1)), east, dim=1)
+
+
 # ===================================================================== batch module
 class BatchAHRS(nn.Module):
     """Whole-sequence learned AHRS (TorchScript-able). See the module docstring for the contract.
@@ -191,6 +289,8 @@ class BatchAHRS(nn.Module):
 
     def __init__(self, fused: Dict[str, Any], metadata: Mapping[str, Any], net_dtype: torch.dtype = torch.float32):
         super().__init__()
+        if net_dtype not in NET_DTYPES:
+            raise ExportError(f"net_dtype {net_dtype}: expected one of {NET_DTYPES}")
         self.axes = int(fused["axes"])
         self.groups = int(fused["groups"])
         self.has_ecf = bool(fused["ecf"])
@@ -199,26 +299,31 @@ class BatchAHRS(nn.Module):
         self.use_mag = bool(fused["use_mag"])
         self.net_dtype = net_dtype
         f64 = torch.float64
-        self.register_buffer("input_mean", fused["input_mean"].to(net_dtype))
-        self.register_buffer("input_inv_std", (1.0 / fused["input_std"]).to(net_dtype))
+        # normalisation and output layer: float32 (float64 for a float64 network); the
+        # convolutions run in net_dtype (bfloat16: opt-in, batch only, see the module docstring)
+        io_dtype = torch.float64 if net_dtype == torch.float64 else torch.float32
+        self.io_dtype = io_dtype
+        self.register_buffer("input_mean", fused["input_mean"].to(io_dtype))
+        self.register_buffer("input_inv_std", (1.0 / fused["input_std"]).to(io_dtype))
         self.register_buffer("calib_matrix", fused["calib_matrix"].to(f64))
         self.register_buffer("out_bias", fused["out_bias"].to(f64))
         self.register_buffer("acc_gain", fused["acc_gain"].to(f64))
         self.register_buffer("mag_gain", fused["mag_gain"].to(f64))
+        self.register_buffer("hamilton", _hamilton_table())
         self.kernel_size = int(fused.get("kernel_size", 1))
         self.first_dilation = int(fused.get("first_dilation", 1))
         empty = torch.zeros(0, dtype=net_dtype)
         if self.groups > 0:
             self.register_buffer("first_weight", fused["first_weight"].to(net_dtype))
             self.register_buffer("first_bias", fused["first_bias"].to(net_dtype))
-            self.register_buffer("out_weight", fused["out_weight"].to(net_dtype))
+            self.register_buffer("out_weight", fused["out_weight"].to(io_dtype))
             self.hidden_weights = [w.to(net_dtype) for w, _, _ in fused["hidden"]]
             self.hidden_biases = [b.to(net_dtype) for _, b, _ in fused["hidden"]]
             self.hidden_dilations = [int(d) for _, _, d in fused["hidden"]]
         else:
             self.register_buffer("first_weight", empty)
             self.register_buffer("first_bias", empty)
-            self.register_buffer("out_weight", empty)
+            self.register_buffer("out_weight", torch.zeros(0, dtype=io_dtype))
             self.hidden_weights, self.hidden_biases, self.hidden_dilations = [], [], []
         self.metadata_json = json.dumps(dict(metadata), sort_keys=True)
 
@@ -259,43 +364,57 @@ class BatchAHRS(nn.Module):
         n = imu.size(0)
         if self.groups == 0:
             return self.out_bias.expand(n, self.axes)
-        z = (imu.to(self.net_dtype) - self.input_mean) * self.input_inv_std  # (N, C)
-        h = z.t().unsqueeze(0)  # (1, C, N)
+        z = (imu.to(self.io_dtype) - self.input_mean) * self.input_inv_std  # (N, C)
+        h = z.t().unsqueeze(0).to(self.net_dtype)  # (1, C, N)
         k1 = self.kernel_size - 1
-        h = F.conv1d(F.pad(h, [k1 * self.first_dilation, 0]), self.first_weight, self.first_bias,
-                     dilation=self.first_dilation)
-        h = F.gelu(h)
+        h = F.gelu(F.conv1d(F.pad(h, [k1 * self.first_dilation, 0]), self.first_weight, self.first_bias,
+                            dilation=self.first_dilation))
+        hs = h.chunk(self.groups, 1)
         for i in range(len(self.hidden_weights)):
             d = self.hidden_dilations[i]
-            # one convolution per group: on CPU ~2x faster than a grouped convolution
-            hs = F.pad(h, [k1 * d, 0]).chunk(self.groups, 1)
+            # one convolution per group (on CPU ~2x faster than a grouped convolution), kept
+            # apart (no concatenation) until the output layer
             ws = self.hidden_weights[i].chunk(self.groups, 0)
             bs = self.hidden_biases[i].chunk(self.groups, 0)
-            h = F.gelu(torch.cat([F.conv1d(hs[j], ws[j], bs[j], dilation=d) for j in range(self.groups)], 1))
-        e = self.out_weight @ h[0]  # (C, N)
+            hs = [F.gelu(F.conv1d(F.pad(hs[j], [k1 * d, 0]), ws[j], bs[j], dilation=d))
+                  for j in range(self.groups)]
+        wo = self.out_weight.chunk(self.groups, 1)
+        e = torch.mm(wo[0], hs[0][0].to(self.io_dtype))  # (C, N)
+        for j in range(1, self.groups):
+            e = torch.addmm(e, wo[j], hs[j][0].to(self.io_dtype))
         return e.t().to(torch.float64) + self.out_bias
 
-    def _correction(self, c_prev: Tensor, acc: Tensor, mag: Tensor, acc_raw: Tensor) -> Tensor:
+    def _correction(self, q_prev: Tensor, acc: Tensor, mag: Tensor, acc_raw: Tensor) -> Tensor:
+        """γ ⊙ e_acc + η ⊙ e_mag (Eqs. 22-24) against C̃ = C(q_prev), (N, 3) float64."""
+        q = q_prev / torch.linalg.norm(q_prev, dim=1, keepdim=True)
+        up, east = _rows_up_east(q)
         corr = torch.zeros_like(acc)
         if self.use_acc:
-            corr = corr + self.acc_gain * acc_error(acc, c_prev)
+            corr = corr + self.acc_gain * acc_error_rows(acc, up)
         if self.use_mag:
-            corr = corr + self.mag_gain * mag_error(mag, acc_raw, c_prev)
+            corr = corr + self.mag_gain * mag_error_rows(mag, acc_raw, east)
         return corr
 
-    def corrected_rate(self, imu: Tensor, dt: Tensor, r0: Tensor) -> Tensor:
-        """ω̂ (N, 3) float64: calibration (Eqs. 12-14) + open-loop ECF (Eqs. 22-25)."""
+    def _previous(self, q0: Tensor, omega: Tensor, dt: Tensor) -> Tensor:
+        """Pre-integrated attitude C̃_{k-1} (Eq. 25) for every sample k as (N, 4) quaternions
+        (entry 0 = q0), as :func:`tcn_ahrs.model.ecf.previous_attitude`."""
+        q = quat_integrate(q0, omega, dt, self.hamilton)
+        return torch.cat([q0.unsqueeze(0), q[:-1]], 0)
+
+    def corrected_rate(self, imu: Tensor, dt: Tensor, q0: Tensor) -> Tensor:
+        """ω̂ (N, 3) float64: calibration (Eqs. 12-14) + open-loop ECF (Eqs. 22-25).
+        q0 (4,) unit quaternion, nav_from_body."""
         x = imu.to(torch.float64)
-        cal = x @ self.calib_matrix.t() - self.errors(imu)
+        cal = torch.addmm(self.errors(imu), x, self.calib_matrix.t(), beta=-1.0)  # M y − e
         gyro = cal[:, 0:3]
         if not self.has_ecf:
             return gyro
         acc = cal[:, 3:6]
         mag = cal[:, 6:9] if self.axes == 9 else acc
         base = x[:, 0:3] if self.preintegration == "raw" else gyro
-        omega = gyro + self._correction(previous_attitude(r0, base, dt), acc, mag, x[:, 3:6])
+        omega = gyro + self._correction(self._previous(q0, base, dt), acc, mag, x[:, 3:6])
         if self.preintegration == "two_pass":
-            omega = gyro + self._correction(previous_attitude(r0, omega, dt), acc, mag, x[:, 3:6])
+            omega = gyro + self._correction(self._previous(q0, omega, dt), acc, mag, x[:, 3:6])
         return omega
 
     def forward(self, imu: Tensor, dt: Union[float, Tensor], q0: Tensor) -> Tuple[Tensor, Tensor]:
@@ -303,10 +422,12 @@ class BatchAHRS(nn.Module):
         self._check_imu(imu)
         n = imu.size(0)
         dtv = self._dt(dt, n)
-        r0 = so3.quat_to_matrix(self._q0(q0))
-        omega = self.corrected_rate(imu, dtv, r0)
-        rot = so3.integrate(r0, omega, dtv)  # Eq. 3, float64 parallel prefix
-        return so3.matrix_to_quat(rot), omega
+        q0n = self._q0(q0)
+        omega = self.corrected_rate(imu, dtv, q0n)
+        q = quat_integrate(q0n, omega, dtv, self.hamilton)  # Eq. 3, float64 parallel prefix
+        # unit norm and the w >= 0 representative in one multiply
+        scale = torch.where(q[:, :1] < 0.0, -1.0, 1.0) / torch.linalg.norm(q, dim=1, keepdim=True)
+        return q * scale, omega
 
 
 # ================================================================= streaming module
@@ -314,12 +435,18 @@ class StreamingAHRS(BatchAHRS):
     """One sample per call (TorchScript-able). ``reset(q0)``, ``step(sample (C,), dt)`` ->
     ``(quat (4,), omega (3,))``; ``forward`` = ``step``; ``run(imu, dt, q0)`` = reset + steps.
 
-    Convolution state: layer l keeps a doubled ring buffer of ``2 * L_l`` columns,
-    ``L_l = dilation_l * (kernel - 1) + 1`` (the current input plus dilation*(kernel-1) past
-    ones): each input is written at ``p = t mod L_l`` and ``p + L_l``, so the ``kernel`` taps
-    of sample t are the strided view ``[p + 1 : p + 1 + L_l : dilation]``, oldest first
-    (no gather, no allocation). ECF state: quaternions of the pre-integrated attitude(s) C̃
-    (Eq. 25; a second one for ``two_pass``) and of the output attitude (Eq. 3), float64.
+    Convolution state: layer l keeps a ring buffer of ``L_l = dilation_l * (kernel - 1) + 1``
+    inputs (the current one plus dilation*(kernel-1) past ones), time-major. Each input is
+    written once, at row ``p = t mod L_l``; the ``kernel`` taps of sample t, oldest first, are
+    rows ``(p + 1 + j * dilation) mod L_l``, read with one ``index_select`` through an index
+    precomputed for every phase p. The first layer's buffer holds the raw samples (the input
+    normalisation is folded into its weights, so ``reset`` fills it with the normalisation
+    mean = the batch model's zero padding of the normalised input). ECF state: quaternions of
+    the pre-integrated attitude(s) C̃ (Eq. 25; a second one for ``two_pass``) and of the output
+    attitude (Eq. 3), float64 scalars.
+
+    Speed: the step is bound by per-op dispatch (~0.5-1 us per TorchScript tensor op), not by
+    arithmetic, so it uses as few tensor ops as possible (~30 per sample).
     """
 
     hidden_weights: List[Tensor]  # (TorchScript reads only this class's own annotations)
@@ -328,6 +455,8 @@ class StreamingAHRS(BatchAHRS):
     metadata_json: str
     ring_buffers: List[Tensor]
     spans: List[int]
+    tap_index: List[Tensor]
+    tap_offsets: List[int]
     acc_gain_list: List[float]
     mag_gain_list: List[float]
     step_weights: List[Tensor]
@@ -337,29 +466,60 @@ class StreamingAHRS(BatchAHRS):
     q_att: List[float]
 
     def __init__(self, fused: Dict[str, Any], metadata: Mapping[str, Any], net_dtype: torch.dtype = torch.float32):
+        if net_dtype == torch.bfloat16:
+            raise ExportError("net_dtype bfloat16 is for the batch module only (a per-sample bfloat16 "
+                              "matrix-vector product is not faster on CPU and loses precision)")
         super().__init__(fused, metadata, net_dtype)
         k = self.kernel_size
         self.t = 0
         self.first_span = self.first_dilation * (k - 1) + 1
         g = self.groups
+        self.tap_index, self.tap_offsets = [], []
+
+        def add_taps(span: int, dilation: int) -> None:
+            # per phase p: rows of the taps, oldest first
+            self.tap_offsets.append(len(self.tap_index))
+            for p in range(span):
+                self.tap_index.append(torch.tensor([(p + 1 + j * dilation) % span for j in range(k)],
+                                                   dtype=torch.long))
+
         if g > 0:
-            self.register_buffer("first_buffer", torch.zeros(self.axes, 2 * self.first_span, dtype=net_dtype))
-            self.register_buffer("first_weight_2d", self.first_weight.reshape(self.first_weight.shape[0], -1).clone())
+            mean = fused["input_mean"].double()
+            inv_std = 1.0 / fused["input_std"].double()
+            w0 = fused["first_weight"].double() * inv_std[None, :, None]  # (G*C1, C, k), Eq. 12 normalisation folded
+            b0 = fused["first_bias"].double() - (w0 * mean[None, :, None]).sum((1, 2))
+            # (k*C, G*C1) in (tap, channel) row order: taps (k, C) flattened times this matrix
+            self.register_buffer("first_weight_t", (w0.permute(2, 1, 0).reshape(k * self.axes, -1) * _SQRT_HALF)
+                                 .to(net_dtype).contiguous())
+            self.register_buffer("first_bias_step", (b0.reshape(1, -1) * _SQRT_HALF).to(net_dtype))
+            self.register_buffer("first_buffer", torch.zeros(self.first_span, self.axes, dtype=net_dtype))
+            add_taps(self.first_span, self.first_dilation)
         else:
-            self.register_buffer("first_buffer", torch.zeros(0, dtype=net_dtype))
-            self.register_buffer("first_weight_2d", torch.zeros(0, dtype=net_dtype))
+            for name in ("first_weight_t", "first_bias_step", "first_buffer"):
+                self.register_buffer(name, torch.zeros(0, dtype=net_dtype))
         self.ring_buffers, self.spans, self.step_weights, self.step_biases = [], [], [], []
+        fused_hidden_f64 = [(w.double(), b.double()) for w, b, _ in fused.get("hidden", [])]
         for w, b, d in zip(self.hidden_weights, self.hidden_biases, self.hidden_dilations):
             c_out, c_in = w.shape[0] // g, w.shape[1]
             span = d * (k - 1) + 1
             self.spans.append(span)
-            # time-major buffer (G, 2L, C_in): writing one input is a contiguous row
-            self.ring_buffers.append(torch.zeros(g, 2 * span, c_in, dtype=net_dtype))
+            # time-major buffer (G, L, C_in): writing one input is one (G, 1, C_in) copy and the
+            # gathered taps (G, k, C_in) are contiguous
+            self.ring_buffers.append(torch.zeros(g, span, c_in, dtype=net_dtype))
+            add_taps(span, d)
             # (G, k*C_in, C_out) with the taps' (tap, channel) order: the per-sample product is a
             # (1, k*C_in) row times this matrix (a batched row-vector product is far faster
             # on CPU than a batched matrix times a one-column matrix)
-            self.step_weights.append(w.reshape(g, c_out, c_in, k).permute(0, 3, 2, 1).reshape(g, k * c_in, c_out).contiguous())
-            self.step_biases.append(b.reshape(g, 1, c_out).contiguous())
+            # GELU as 2 ops (see _gelu_scaled): outputs scaled by 1/sqrt(2), inputs by the
+            # same factor again (the previous layer emits sqrt(2) * GELU), in float64
+            w_f, b_f = fused_hidden_f64[len(self.spans) - 1]
+            self.step_weights.append((w_f.reshape(g, c_out, c_in, k).permute(0, 3, 2, 1).reshape(g, k * c_in, c_out) * 0.5)
+                                     .to(net_dtype).contiguous())
+            self.step_biases.append((b_f.reshape(g, 1, c_out) * _SQRT_HALF).to(net_dtype).contiguous())
+        # e = W_o h + b_o in float64, subtracted from M y in one addmv (Eqs. 12-14); the last
+        # layer's features arrive as sqrt(2) * GELU
+        self.register_buffer("out_weight_f64", fused["out_weight"].double() * _SQRT_HALF if g > 0
+                             else torch.zeros(0, dtype=torch.float64))
         self.acc_gain_list = [float(v) for v in self.acc_gain]
         self.mag_gain_list = [float(v) for v in self.mag_gain]
         q = [1.0, 0.0, 0.0, 0.0]
@@ -373,7 +533,9 @@ class StreamingAHRS(BatchAHRS):
         self.q_pre2 = list(q)
         self.q_att = list(q)
         self.t = 0
-        self.first_buffer.zero_()
+        if self.groups > 0:
+            # raw-sample buffer: the mean normalises to the batch model's zero padding
+            self.first_buffer.copy_(self.input_mean.expand_as(self.first_buffer))
         for buf in self.ring_buffers:
             buf.zero_()
 
@@ -426,30 +588,40 @@ class StreamingAHRS(BatchAHRS):
         return [cx, cy, cz]
 
     # ----------------------------------------------------------------------- step
+    @staticmethod
+    def _gelu_scaled(u: Tensor) -> Tensor:
+        """``sqrt(2) * GELU(sqrt(2) u) = u (1 + erf(u))``: exact GELU in 2 ops (``F.gelu`` costs
+        ~8 us per call on these tiny tensors, erf + addcmul ~2 us); the sqrt(2) factors are
+        folded into the adjacent layers' weights."""
+        return torch.addcmul(u, u, torch.erf(u))
+
     def _errors_step(self, sample: Tensor) -> Tensor:
-        """Learned error vector e (C,) float64 for the newest sample (advances the ring buffers)."""
-        if self.groups == 0:
-            return self.out_bias
-        z = (sample.to(self.net_dtype) - self.input_mean) * self.input_inv_std
+        """Hidden features of the last layer, flat (G*C_last,) float64, for the newest sample
+        (advances the ring buffers). Only called when the model has error TCNs."""
         span = self.first_span
         p = self.t % span
         buf = self.first_buffer
-        buf[:, p] = z
-        buf[:, p + span] = z
-        taps = buf[:, p + 1:p + 1 + span:self.first_dilation].reshape(-1)
-        h = F.gelu(torch.addmv(self.first_bias, self.first_weight_2d, taps))
+        buf.select(0, p).copy_(sample)  # (copy_ converts the dtype)
+        taps = buf.index_select(0, self.tap_index[self.tap_offsets[0] + p]).view(1, -1)
         g = self.groups
-        h = h.reshape(g, -1)
+        h = self._gelu_scaled(torch.addmm(self.first_bias_step, taps, self.first_weight_t)).view(g, 1, -1)
         for i in range(len(self.ring_buffers)):
             span = self.spans[i]
             p = self.t % span
             buf = self.ring_buffers[i]
-            buf[:, p] = h
-            buf[:, p + span] = h
-            taps = buf[:, p + 1:p + 1 + span:self.hidden_dilations[i]].reshape(g, 1, -1)
-            h = F.gelu(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i])).reshape(g, -1)
-        e = torch.mv(self.out_weight, h.reshape(-1))
-        return e.to(torch.float64) + self.out_bias
+            buf.narrow(1, p, 1).copy_(h)
+            taps = buf.index_select(1, self.tap_index[self.tap_offsets[i + 1] + p]).view(g, 1, -1)
+            h = self._gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
+        return h.view(-1).to(torch.float64)
+
+    @staticmethod
+    def _f64_tensor(vals: List[float]) -> Tensor:
+        """List of floats -> float64 tensor to ~1e-15 relative. (TorchScript's
+        ``torch.tensor(List[float], dtype=float64)`` rounds through float32; the float32
+        residual adds back what it lost, leaving a 2^-48 relative error.)"""
+        hi = torch.tensor(vals, dtype=torch.float64)
+        hl: List[float] = hi.tolist()
+        return hi + torch.tensor([v - h for v, h in zip(vals, hl)], dtype=torch.float64)
 
     @torch.jit.export
     def step(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:
@@ -459,7 +631,12 @@ class StreamingAHRS(BatchAHRS):
             raise ValueError("sample: expected shape (" + str(self.axes) + ",), got " + str(list(sample.shape)))
         dtf = float(dt.item()) if isinstance(dt, Tensor) else float(dt)
         x = sample.to(torch.float64)
-        cal_t = torch.addmv(self._errors_step(sample), self.calib_matrix, x, beta=-1.0)  # M y − e
+        if self.groups > 0:
+            # M y − (W_o h + b_o) (Eqs. 12-14): two fused multiply-adds in float64
+            cal_t = torch.addmv(torch.addmv(self.out_bias, self.out_weight_f64, self._errors_step(sample)),
+                                self.calib_matrix, x, beta=-1.0)
+        else:
+            cal_t = torch.addmv(self.out_bias, self.calib_matrix, x, beta=-1.0)
         cal: List[float] = cal_t.tolist()
         raw: List[float] = x.tolist()
         gx, gy, gz = cal[0], cal[1], cal[2]
@@ -484,11 +661,7 @@ class StreamingAHRS(BatchAHRS):
         self.t += 1
         q = self.q_att
         sign = -1.0 if q[0] < 0.0 else 1.0  # w >= 0 representative, as the batch module
-        # (TorchScript's torch.tensor(List[float]) rounds through float32: fill float64 slots)
-        out = torch.empty(7, dtype=torch.float64)
-        vals = [sign * q[0], sign * q[1], sign * q[2], sign * q[3], ox, oy, oz]
-        for i in range(7):
-            out[i].fill_(vals[i])
+        out = self._f64_tensor([sign * q[0], sign * q[1], sign * q[2], sign * q[3], ox, oy, oz])
         return out[0:4], out[4:7]
 
     def forward(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:  # type: ignore[override]
@@ -558,10 +731,17 @@ def build_metadata(model: nn.Module, mode: str, meta: Optional[Mapping[str, Any]
     return md
 
 
-def _script(module: nn.Module):
+def _script(module: nn.Module, freeze: bool = True):
+    """TorchScript ``module`` (eval mode). ``freeze``: :func:`torch.jit.freeze` it, keeping the
+    public methods: attributes that are never mutated (flags, weights, layer lists) become
+    constants, dead branches go, and the per-sample ``step`` runs ~8% faster."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit.script is deprecated in 2.13
-        return torch.jit.script(module)
+        scripted = torch.jit.script(module.eval())
+        if not freeze:
+            return scripted
+        keep = [n for n in ("metadata", "errors", "corrected_rate", "reset", "step", "run") if scripted._c._has_method(n)]
+        return torch.jit.freeze(scripted, preserved_attrs=keep)
 
 
 def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str):
@@ -607,9 +787,11 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     if mode not in MODES:
         raise ValueError(f"export mode {mode!r}: expected one of {MODES}")
     if isinstance(net_dtype, str):
-        if net_dtype not in ("float32", "float64"):
-            raise ValueError(f"net_dtype {net_dtype!r}: expected 'float32' or 'float64'")
+        if net_dtype not in ("float32", "float64", "bfloat16"):
+            raise ValueError(f"net_dtype {net_dtype!r}: expected 'float32', 'float64' or 'bfloat16'")
         net_dtype = getattr(torch, net_dtype)
+    if net_dtype == torch.bfloat16 and mode != "batch":
+        raise ValueError(f"net_dtype bfloat16 is for mode=batch only (got mode={mode})")
     model = model_from_checkpoint(ckpt_path)
     ck_meta = checkpoint_meta(load_checkpoint(ckpt_path), ckpt_path)
     rate = rate_hz if rate_hz is not None else ck_meta.get("rate_hz", (ck_meta.get("layout") or {}).get("rate_hz"))

@@ -13,9 +13,10 @@ import torch
 
 from tcn_ahrs import __version__, so3
 from tcn_ahrs.checkpoint import CheckpointError, atomic_save, layout_meta
-from tcn_ahrs.export import (BatchAHRS, StreamingAHRS, _script, build_metadata, export_batch,
-                             export_checkpoint, export_streaming, file_sha256, fuse_model,
-                             read_metadata, streaming_path)
+from tcn_ahrs.export import (BatchAHRS, ExportError, StreamingAHRS, _hamilton_table, _script,
+                             build_metadata, export_batch, export_checkpoint, export_streaming,
+                             file_sha256, fuse_model, quat_cumprod, quat_integrate, read_metadata,
+                             streaming_path)
 from tcn_ahrs.model.ahrs import LearnedAHRS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -198,6 +199,70 @@ def test_bad_inputs_raise_clear_errors():
     stream.reset(q0)
     with pytest.raises(Exception, match=r"sample: expected shape \(6,\)"):
         stream.step(torch.zeros(9), 0.01)
+
+
+# ------------------------------------------------------------------- fast-path building blocks
+@pytest.mark.parametrize("n", [1, 2, 7, 64, 65, 97, 1000, 1001])
+@pytest.mark.parametrize("block", [4, 32])
+def test_quat_cumprod_matches_sequential_matrix_products(n, block):
+    """The blocked quaternion scan == a plain left-to-right product of rotation matrices (an
+    independent reference), for lengths around and between block multiples."""
+    g = torch.Generator().manual_seed(n)
+    q = so3.quat_normalize(torch.randn(n, 4, dtype=torch.float64, generator=g))
+    got = quat_cumprod(q, _hamilton_table(), block)
+    assert got.shape == (n, 4)
+    ref = so3.cumprod_matrix_sequential(so3.quat_to_matrix(q))
+    assert torch.allclose(so3.quat_to_matrix(got / got.norm(dim=1, keepdim=True)), ref, atol=1e-12, rtol=0)
+    # the Hamilton table is the Hamilton product
+    assert torch.allclose(_hamilton_table().T @ (q[:, :, None] * q.flip(0)[:, None, :]).reshape(n, 16).T,
+                          so3.quat_mul(q, q.flip(0)).T, atol=1e-15)
+
+
+def test_quat_integrate_matches_so3_integrate():
+    g = torch.Generator().manual_seed(2)
+    n = 3001
+    omega = 2.0 * torch.randn(n, 3, dtype=torch.float64, generator=g)
+    dt = 0.01 + 0.001 * torch.rand(n, dtype=torch.float64, generator=g)
+    q0 = q0_for(1)
+    q = quat_integrate(q0, omega, dt, _hamilton_table())
+    ref = so3.integrate(so3.quat_to_matrix(q0), omega, dt)
+    assert torch.allclose(so3.quat_to_matrix(q / q.norm(dim=1, keepdim=True)), ref, atol=1e-12, rtol=0)
+    assert torch.equal(q[0], q0)
+
+
+def test_streaming_output_tensor_is_float64_exact():
+    """TorchScript's torch.tensor(List[float], dtype=float64) rounds through float32; the
+    streaming output goes through a float32-residual correction instead."""
+    f = torch.jit.script(StreamingAHRS._f64_tensor)
+    vals = [0.1234567891234567, 1.0 / 3.0, -2.0 / 3.0, 1e-9 / 7.0, 12345.678901234, -0.7, 0.9]
+    got = f(vals)
+    assert got.dtype == torch.float64
+    rel = ((got - torch.tensor(vals, dtype=torch.float64)).abs() / torch.tensor(vals, dtype=torch.float64).abs())
+    assert rel.max() < 1e-14
+
+
+def test_bfloat16_network_is_batch_only_and_opt_in(tmp_path):
+    """bfloat16 convolutions (opt-in, ~2x faster TCN on AVX512-BF16 CPUs): runs, is close to the
+    float32 export but NOT within the 1e-5 rad parity (documented in docs/performance.md)."""
+    model = randomize(LearnedAHRS(**CONFIGS["ahrs9_raw"]), seed=9)
+    fused = fuse_model(model)
+    imu, q0 = make_imu(9, n=1000), q0_for(0)
+    q32, w32 = _script(BatchAHRS(fused, build_metadata(model, "batch")))(imu, 0.01, q0)
+    md = build_metadata(model, "batch", net_dtype=torch.bfloat16)
+    assert md["dtype"]["network"] == "bfloat16"
+    q16, w16 = _script(BatchAHRS(fused, md, torch.bfloat16))(imu, 0.01, q0)
+    assert q16.dtype == torch.float64 and w16.dtype == torch.float64
+    err = angle(q32, q16).max().item()
+    assert 0.0 < err < 5e-3, err
+    with pytest.raises(ExportError, match="batch module only"):
+        StreamingAHRS(fused, build_metadata(model, "streaming"), torch.bfloat16)
+    with pytest.raises(ExportError, match="net_dtype"):
+        BatchAHRS(fused, md, torch.float16)
+    ckpt, _ = _checkpoint(tmp_path, dict(CONFIGS["ahrs6_denoised"]))
+    with pytest.raises(ValueError, match="mode=batch only"):
+        export_checkpoint(ckpt, tmp_path / "b.pt", "both", rate_hz=100, net_dtype="bfloat16")
+    written = export_checkpoint(ckpt, tmp_path / "b.pt", "batch", rate_hz=100, net_dtype="bfloat16")
+    assert read_metadata(written["batch"])["dtype"]["network"] == "bfloat16"
 
 
 # ------------------------------------------------------------------- files and checkpoints
