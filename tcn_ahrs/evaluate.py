@@ -2,13 +2,18 @@
 
 For every recording and every estimator:
 
-1. the estimator runs on the recording (``est.run(seq, init_quat)``); ``init_quat`` is the
+1. the estimator runs on the recording (``est.run(seq, init_quat)``, or once on all recordings
+   with ``est.run_batch(seqs, init_quats)`` when it has that method); an estimator with
+   ``axes == 6`` gets the recording without magnetometer and is scored as 6-axis; ``init_quat`` is the
    ground-truth attitude at sample 0 if that sample has valid ground truth, otherwise the
    ground truth at the first valid sample, applied at sample 0
    (:func:`tcn_ahrs.estimators.base.initial_quat`). The difference this leaves at the first
    scored sample is removed for AAE/AYE by their alignment (:mod:`tcn_ahrs.metrics`); BROAD's
    errors are never aligned (BROAD trials start with a rest phase whose ground truth is valid);
 2. the metrics of :func:`tcn_ahrs.metrics.sequence_metrics` are computed on ``seq.scored()``;
+   ``inclination_deg`` (BROAD's inclination error, needs no heading) for every recording; an
+   estimator with ``heading_free = True`` (RIANN) gets ``null`` AAE/AYE/total/heading
+   (inclination only);
 3. optionally a plot (roll/pitch/yaw vs ground truth, error over time, ``gyro_correction`` if the
    estimator reports it — the paper's Figs. 3-8) and TUM trajectories for ``evo`` are written.
 
@@ -46,7 +51,7 @@ from typing import Dict, Iterable, List, Optional, Sequence
 import numpy as np
 
 from .estimators.base import initial_quat
-from .metrics import attitude_errors, align_to_first, sequence_metrics
+from .metrics import attitude_errors, align_to_first, broad_errors, sequence_metrics
 from .sequence import ImuSequence
 
 METRIC_KEYS = ("aae_deg", "aye_deg", "total_deg", "heading_deg", "inclination_deg")
@@ -142,40 +147,67 @@ def evaluate(
         out.mkdir(parents=True, exist_ok=True)
 
     methods: Dict[str, dict] = {n: {"recordings": []} for n in names}
+    # The view of each recording the estimators get (axes=6: no magnetometer) and the initial
+    # attitudes; an estimator with ``axes == 6`` (e.g. a 6D peer/filter column on 9-axis data)
+    # gets the 6-axis view and is scored as 6-axis.
+    views: List[ImuSequence] = []
     for seq in sequences:
         if axes == 6 and seq.has_mag:
-            seq_in = seq.without_mag()
+            views.append(seq.without_mag())
         else:
             if axes == 9 and not seq.has_mag:
                 warnings.warn(f"axes=9 requested but recording {seq.name!r} has no magnetometer; "
                               "evaluating it as 6-axis")
-            seq_in = seq
-        q0 = initial_quat(seq)
-        if out is not None and trajectories:
+            views.append(seq)
+    q0s = [initial_quat(seq) for seq in sequences]
+    if out is not None and trajectories:
+        for seq in sequences:
             valid = seq.quat_valid
             write_tum(out / "trajectories" / "groundtruth" / f"{safe_name(seq.name)}.txt",
                       seq.time[valid], seq.quat[valid])
-        for est in estimators:
+    for est in estimators:
+        est_views = [v.without_mag() if (getattr(est, "axes", None) == 6 and v.has_mag) else v for v in views]
+        heading_free = bool(getattr(est, "heading_free", False))
+        batched = None
+        if hasattr(est, "run_batch") and len({v.has_mag for v in est_views}) == 1:
+            # all recordings in one (padded) filter call; run time split evenly over them
             t0 = _time.perf_counter()
-            res = est.run(seq_in, q0)
-            run_time = _time.perf_counter() - t0
+            batched = est.run_batch(est_views, q0s)
+            batch_time = (_time.perf_counter() - t0) / max(1, len(sequences))
+        for i, (seq, seq_in) in enumerate(zip(sequences, est_views)):
+            if batched is not None:
+                res, run_time = batched[i], batch_time
+            else:
+                t0 = _time.perf_counter()
+                res = est.run(seq_in, q0s[i])
+                run_time = _time.perf_counter() - t0
             quat = np.asarray(res.quat, dtype=np.float64)
             if quat.shape != (len(seq), 4):
                 raise ValueError(f"estimator {est.name!r} on {seq.name!r}: expected quat of shape "
                                  f"({len(seq)}, 4), got {quat.shape}")
             m = sequence_metrics(seq, quat, axes=seq_in.num_axes, align=align)
+            if "inclination_deg" not in m:
+                # inclination needs no heading: reported for every estimator (6D convention)
+                m["inclination_deg"] = broad_errors(seq.quat, quat, seq.scored(), "6d")["inclination_deg"]
+            if heading_free:
+                # no heading reference (RIANN): only the inclination is meaningful
+                for k in ("aae_deg", "aye_deg", "total_deg", "heading_deg"):
+                    m[k] = float("nan")
             row = {"name": seq.name, "n_samples": len(seq), "duration_s": seq.duration,
                    "axes": seq_in.num_axes, **m, "run_time_s": run_time}
+            if heading_free:
+                row["heading_free"] = True
             methods[est.name]["recordings"].append({k: _clean(v) for k, v in row.items()})
             if verbose:
-                print(f"{est.name:>20s} {seq.name:<45s} AAE {m['aae_deg']:8.3f}  AYE {m['aye_deg']:8.3f}",
-                      file=sys.stderr)
+                print(f"{est.name:>20s} {seq.name:<45s} AAE {m['aae_deg']:8.3f}  AYE {m['aye_deg']:8.3f}  "
+                      f"incl {m['inclination_deg']:8.3f}", file=sys.stderr)
             if out is not None and plots:
                 plot_recording(out / "plots" / safe_name(est.name) / f"{safe_name(seq.name)}.png",
                                seq, quat, est.name, res.signals, align=align)
             if out is not None and trajectories:
                 write_tum(out / "trajectories" / safe_name(est.name) / f"{safe_name(seq.name)}.txt",
                           seq.time, quat)
+        batched = None
 
     for name, mres in methods.items():
         rows = mres["recordings"]

@@ -1,0 +1,50 @@
+#!/usr/bin/env python
+"""Benchmarks, one dispatcher: ``python scripts/benchmark.py MODE [hydra overrides]``.
+
+    python scripts/benchmark.py accuracy data=broad [data.root=DIR] [ckpt=PATH] [tune=true]
+    python scripts/benchmark.py accuracy data=euroc data.split=val
+    python scripts/benchmark.py speed ...
+
+accuracy: every method incl. the PyPI peers on one dataset through the evaluation runner
+          (tcn_ahrs.compare.benchmark_accuracy_main; same code as scripts/compare.py).
+speed:    tcn_ahrs.bench_speed.main(cfg) (imported only in that mode).
+Config: conf/benchmark.yaml. Output: runs/benchmark/<mode>/<data>/<time> unless out=DIR.
+"""
+import sys
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+MODES = ("accuracy", "speed")
+
+
+def _mode_from_argv(argv) -> None:
+    """Turn the positional MODE into the Hydra override ``mode=MODE`` (Hydra rejects bare words)."""
+    if len(argv) > 1 and not argv[1].startswith("-") and "=" not in argv[1]:
+        mode = argv.pop(1)
+        if mode not in MODES:
+            sys.exit(f"benchmark.py: unknown mode {mode!r}; expected one of {', '.join(MODES)}")
+        argv.insert(1, f"mode={mode}")
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="benchmark")
+def main(cfg: DictConfig) -> None:
+    mode = str(cfg.mode)
+    if mode == "accuracy":
+        from tcn_ahrs.compare import benchmark_accuracy_main
+
+        benchmark_accuracy_main(cfg)
+    elif mode == "speed":
+        from tcn_ahrs.bench_speed import main as speed_main
+
+        speed_main(cfg)
+    else:
+        raise SystemExit(f"benchmark.py: unknown mode {mode!r}; expected one of {', '.join(MODES)}")
+
+
+if __name__ == "__main__":
+    _mode_from_argv(sys.argv)
+    main()

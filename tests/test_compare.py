@@ -1,0 +1,321 @@
+"""tcn_ahrs.compare: method registry, tuning on training recordings only, batched filters,
+heading-free scoring, tables, the Hydra entry points (short simulated recordings)."""
+import importlib.util
+import json
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+from scipy.spatial.transform import Rotation
+
+from tcn_ahrs import compare as cmp
+from tcn_ahrs.conventions import quat_xyzw_to_wxyz
+from tcn_ahrs.datasets.simulate import simulate
+from tcn_ahrs.estimators.base import EstimatorOutput, initial_quat
+from tcn_ahrs.estimators.classical import ESEKF, Madgwick
+from tcn_ahrs.evaluate import evaluate
+from tcn_ahrs.sequence import ImuSequence
+from tcn_ahrs.tuning import tune_grid
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def sims():
+    """3 short simulated 9-axis recordings (20 s at 50 Hz): [train, eval, eval]."""
+    return [simulate(p, 20.0, 50.0, seed=s) for p, s in
+            (("walking", 1), ("slow_rotation", 20001), ("fast_rotation", 20002))]
+
+
+def _peers_installed():
+    try:
+        import ahrs  # noqa: F401
+        import vqf  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+# ----------------------------------------------------------------------------- registry
+
+
+def test_method_specs_columns_and_errors():
+    specs = cmp.method_specs(["raw", "ecf", "vqf", "riann"], data_axes=9, both_axes=True,
+                             variants=["default", "tuned"], ckpts={"Proposed": "x.ckpt"})
+    assert [s.name for s in specs] == ["Raw IMU", "ecf9d", "ecf9d (tuned)", "ecf6d", "ecf6d (tuned)",
+                                       "vqf9d", "vqf9d (tuned)", "vqf6d", "vqf6d (tuned)", "riann6d", "Proposed"]
+    assert [s.name for s in cmp.method_specs(["ecf", "riann"], data_axes=9, both_axes=False)] == ["ecf9d"]
+    assert [s.name for s in cmp.method_specs(["ecf"], data_axes=6)] == ["ecf6d"]
+    with pytest.raises(ValueError, match="unknown method.*'kalman'"):
+        cmp.method_specs(["raw", "kalman"])
+    with pytest.raises(ValueError, match="variants"):
+        cmp.method_specs(["ecf"], variants=["best"])
+    with pytest.raises(ValueError, match="duplicate column"):
+        cmp.method_specs(["ecf"], data_axes=6, ckpts={"ecf6d": "x.ckpt"})
+
+
+def test_run_batch_equals_single_runs_with_padding(sims):
+    """One padded batched call == per-recording runs (recordings of different lengths)."""
+    seqs = [sims[1], sims[2].slice(0, 700)]
+    q0s = [initial_quat(s) for s in seqs]
+    for axes in (9, 6):
+        m = cmp.ClassicalMethod(ESEKF(), axes)
+        batch = m.run_batch(seqs, q0s)
+        for s, q0, b in zip(seqs, q0s, batch):
+            view = s if axes == 9 else s.without_mag()
+            single = ESEKF(use_mag=(axes == 9)).run(view, q0)
+            assert b.quat.shape == (len(s), 4)
+            np.testing.assert_allclose(b.quat, single.quat, atol=1e-12)
+            np.testing.assert_allclose(b.signals["gyro_bias"], single.signals["gyro_bias"], atol=1e-12)
+
+
+def test_batched_tuning_matches_tune_grid(sims):
+    """The batched grid search picks what tuning.tune_grid (one recording at a time) picks,
+    with the same scores."""
+    clips = [sims[0], sims[1]]
+    best, table = cmp.tune_classical("madgwick", 6, clips)
+    ref_best, ref_table = tune_grid(Madgwick, [c.without_mag() for c in clips], use_mag=False)
+    assert best == ref_best
+    np.testing.assert_allclose([r["score"] for r in table], [r["score"] for r in ref_table], rtol=1e-9)
+
+
+def test_tuning_clips_start_before_first_scored_sample(sims):
+    s = sims[0]
+    mask = np.zeros(len(s), dtype=bool)
+    mask[400:] = True  # "movement" starts at 8 s
+    from dataclasses import replace
+    s2 = replace(s, score_mask=mask, meta=dict(s.meta))
+    clips, rec = cmp.tuning_clips([s2, sims[1], sims[2]], max_seconds=5.0, lead_seconds=2.0, max_recordings=2)
+    assert [r["name"] for r in rec] == [s2.name, sims[2].name]  # evenly spaced: first and last
+    assert rec[0]["start_s"] == pytest.approx(6.0)
+    assert clips[0].duration == pytest.approx(5.0)
+    assert clips[0].scored().sum() == 151  # 8 s .. 11 s at 50 Hz
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+def test_compare_tunes_on_train_and_writes_tables(sims, tmp_path):
+    train, evals = sims[:1], sims[1:]
+    res = cmp.compare(evals, train, methods=["raw", "ecf", "madgwick"], tune=True, out_dir=tmp_path,
+                      tune_max_seconds_per_recording=10.0, verbose=False, dataset="sim")
+    cols = ["Raw IMU", "ecf9d", "ecf9d (tuned)", "ecf6d", "ecf6d (tuned)",
+            "madgwick9d", "madgwick9d (tuned)", "madgwick6d", "madgwick6d (tuned)"]
+    assert list(res["methods"]) == cols
+    on_disk = json.loads((tmp_path / "results.json").read_text())
+    assert list(on_disk["methods"]) == cols
+    tun = on_disk["tuning"]
+    used = [r["name"] for r in tun["recordings"]]
+    assert used == [train[0].name]
+    assert not set(used) & set(on_disk["recordings"])
+    assert tun["recordings"][0]["duration_s"] == pytest.approx(10.0)
+    assert set(tun["methods"]) == {"ecf9d (tuned)", "ecf6d (tuned)", "madgwick9d (tuned)", "madgwick6d (tuned)"}
+    # tuned parameters come from the grid and are what the tuned column ran with
+    assert tun["methods"]["madgwick9d (tuned)"]["params"]["beta"] in Madgwick.default_grid["beta"]
+    assert on_disk["columns"]["madgwick9d (tuned)"]["params"] == tun["methods"]["madgwick9d (tuned)"]["params"]
+    assert on_disk["columns"]["ecf6d"]["axes"] == 6
+    # the 6D columns are scored as 6-axis, the 9D ones as 9-axis
+    assert {r["axes"] for r in on_disk["methods"]["ecf6d"]["recordings"]} == {6}
+    assert {r["broad_mode"] for r in on_disk["methods"]["ecf9d"]["recordings"]} == {"9d"}
+    for m in cols:
+        assert on_disk["methods"][m]["mean"]["inclination_deg"] is not None
+    md = (tmp_path / "results.md").read_text()
+    assert "| Sequence | Raw IMU AAE | Raw IMU AYE | ecf9d AAE |" in md
+    assert "ecf6d (tuned) AYE" in md and "| Average |" in md
+    assert "## Tuned parameters" in md and train[0].name in md
+    # the tuned ECF is not worse on the recording it was tuned on than the default
+    assert tun["methods"]["ecf9d (tuned)"]["score_aae_deg"] <= (
+        tun["methods"]["ecf9d (tuned)"]["default_in_grid_score_aae_deg"] or np.inf) + 1e-9
+
+
+def test_compare_refuses_tuning_on_evaluation_recordings(sims):
+    with pytest.raises(ValueError, match="also evaluation recordings"):
+        cmp.compare(sims[1:], sims[1:2], methods=["ecf"], tune=True, verbose=False)
+
+
+def test_compare_main_hydra_config(tmp_path):
+    """compare_main: loads data.split for evaluation and the train split for tuning."""
+    data = {"name": "simulated", "axes": 9, "rate": 50.0, "device_seed": 0, "split": "test",
+            "splits": {"train": {"count": 1, "duration": 15.0, "seed_offset": 0, "profiles": ["walking"]},
+                       "test": {"count": 2, "duration": 15.0, "seed_offset": 20000,
+                                "profiles": ["slow_rotation", "fast_rotation"]}}}
+    cfg = OmegaConf.create({"data": data, "methods": ["raw", "mahony"], "tune": True, "both_axes": False,
+                            "variants": ["default", "tuned"], "tune_max_seconds_per_recording": 10,
+                            "out": str(tmp_path)})
+    res = cmp.compare_main(cfg)
+    assert list(res["methods"]) == ["Raw IMU", "mahony9d", "mahony9d (tuned)"]
+    assert [r["name"] for r in res["tuning"]["recordings"]] == ["sim_walking_s0000"]
+    assert res["split"] == "test" and res["tune_split"] == "train"
+    bad = OmegaConf.merge(cfg, {"data": {"split": "train"}})
+    with pytest.raises(ValueError, match="would include the tuning recordings"):
+        cmp.compare_main(bad)
+    with pytest.raises(ValueError, match="unknown key"):
+        cmp.compare_main(OmegaConf.merge(cfg, {"methodz": ["ecf"]}))
+
+
+# ----------------------------------------------------------------------------- heading-free
+
+
+def _seq_with_tilted_estimate(n=300, mag=False):
+    """Ground truth spinning about a tilted axis; the 'estimate' = q_x(2 deg) q_z(30 deg) q_gt:
+    heading error 30 deg, inclination error exactly 2 deg."""
+    t = np.arange(n) / 100.0
+    gt = Rotation.from_rotvec(np.outer(t, [0.3, -0.2, 0.8]))
+    q_gt = quat_xyzw_to_wxyz(gt.as_quat())
+    est = Rotation.from_euler("x", 2, degrees=True) * Rotation.from_euler("z", 30, degrees=True) * gt
+    q_est = quat_xyzw_to_wxyz(est.as_quat())
+    seq = ImuSequence(name="tilted", source="synthetic", time=t, gyro=np.tile([0.3, -0.2, 0.8], (n, 1)),
+                      accel=gt.inv().apply([0, 0, 9.81]), mag=gt.inv().apply([0, 20, -40]) if mag else None,
+                      quat=q_gt, quat_valid=np.ones(n, bool), rate=100.0, check_units=False)
+    return seq, q_est
+
+
+class _Fixed:
+    def __init__(self, name, quat, heading_free, axes=None):
+        self.name, self.quat, self.heading_free = name, quat, heading_free
+        if axes is not None:
+            self.axes = axes
+
+    def run(self, seq, init_quat=None):
+        return EstimatorOutput(self.quat.copy(), {})
+
+
+def test_heading_free_scored_on_inclination_only():
+    seq, q_est = _seq_with_tilted_estimate()
+    res = evaluate([_Fixed("hf", q_est, True), _Fixed("normal", q_est, False)], [seq], align=False)
+    hf, normal = res["methods"]["hf"], res["methods"]["normal"]
+    for k in ("aae_deg", "aye_deg", "total_deg", "heading_deg"):
+        assert hf["recordings"][0].get(k) is None
+        assert hf["mean"].get(k) is None
+    assert hf["recordings"][0]["inclination_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert hf["mean"]["inclination_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert hf["recordings"][0]["heading_free"] is True
+    # a normal estimator on a 6-axis recording without a score mask still gets inclination
+    assert normal["recordings"][0]["inclination_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert 25.0 < normal["recordings"][0]["aye_deg"] < 35.0  # Euler yaw of a tilted estimate: ~30
+
+
+def test_estimator_axes_6_gets_6_axis_view():
+    seq, q_est = _seq_with_tilted_estimate(mag=True)
+    seen = {}
+
+    class Spy(_Fixed):
+        def run(self, s, init_quat=None):
+            seen[self.name] = s.has_mag
+            return super().run(s, init_quat)
+
+    res = evaluate([Spy("six", q_est, False, axes=6), Spy("nine", q_est, False, axes=9)], [seq], align=False)
+    assert seen == {"six": False, "nine": True}
+    assert res["methods"]["six"]["recordings"][0]["axes"] == 6
+    assert res["methods"]["nine"]["recordings"][0]["broad_mode"] == "9d"
+
+
+@pytest.mark.skipif(not importlib.util.find_spec("riann"), reason="riann not installed (pip install -e .[peers])")
+def test_riann_column_is_heading_free(sims):
+    res = cmp.compare(sims[1:2], (), methods=["riann"], tune=False, verbose=False)
+    row = res["methods"]["riann6d"]["recordings"][0]
+    assert row["aae_deg"] is None and row["aye_deg"] is None
+    assert row["inclination_deg"] is not None and row["inclination_deg"] < 20.0
+    assert res["columns"]["riann6d"]["heading_free"] is True
+
+
+# ----------------------------------------------------------------------------- peers, ablation
+
+
+def test_missing_peers_are_skipped_with_warning(sims, monkeypatch):
+    from tcn_ahrs.estimators import peers
+
+    def unavailable(module, package, peer):
+        raise peers.PeerUnavailable(f"peer estimator '{peer}' needs the package '{package}'")
+
+    monkeypatch.setattr(peers, "_import_peer", unavailable)
+    with pytest.warns(UserWarning, match="peer estimators skipped.*vqf9d"):
+        res = cmp.compare(sims[1:2], sims[:1], methods=["raw", "vqf", "ahrs_madgwick"], tune=True,
+                          tune_max_seconds_per_recording=5.0, verbose=False)
+    assert list(res["methods"]) == ["Raw IMU"]
+
+
+@pytest.mark.skipif(not _peers_installed(), reason="vqf/ahrs not installed (pip install -e .[peers])")
+def test_peer_tuning_loops_over_peer_grid(sims):
+    from tcn_ahrs.estimators.peers import PEER_GRIDS
+
+    res = cmp.compare(sims[1:2], sims[:1], methods=["vqf"], both_axes=False, tune=True,
+                      tune_max_seconds_per_recording=8.0, verbose=False)
+    t = res["tuning"]["methods"]["vqf9d (tuned)"]
+    assert t["grid_size"] == len(PEER_GRIDS["vqf"])
+    assert t["params"] in [dict(p) for p in PEER_GRIDS["vqf"]]
+    assert res["columns"]["vqf9d (tuned)"]["params"] == t["params"]
+
+
+def test_ablation_table_layout(sims, tmp_path, monkeypatch):
+    """Checkpoints go through LearnedEstimator; faked here (constant-bias raw integrations)."""
+    from tcn_ahrs.estimators.raw import RawIntegration
+
+    class Fake(RawIntegration):
+        def __init__(self, name):
+            self.name = name
+
+    real_build = cmp.build_estimator
+    monkeypatch.setattr(cmp, "build_estimator",
+                        lambda spec, device="cpu": Fake(spec.name) if spec.kind == "learned" else real_build(spec, device))
+    abl = {"full": "a.ckpt", "w/o mag term": "b.ckpt", "w/o acc term": "c.ckpt", "w/o both": "d.ckpt"}
+    res = cmp.compare(sims[1:], (), methods=["raw"], tune=False, ckpts={"full": "a.ckpt"},
+                      ablation_ckpts=abl, out_dir=tmp_path, verbose=False)
+    assert res["ablation"] == list(abl)
+    assert list(res["methods"]) == ["Raw IMU"] + list(abl)
+    md = (tmp_path / "results.md").read_text()
+    section = md.split("## Ablation (paper Table 3 layout): AAE / AYE")[1]
+    assert "| Sequence | full AAE | full AYE | w/o mag term AAE |" in section
+    assert "Raw IMU AAE" not in section.split("##")[0]
+    with pytest.raises(ValueError, match="one label, one checkpoint"):
+        cmp.compare(sims[1:], (), methods=["raw"], tune=False, ckpts={"full": "x.ckpt"}, ablation_ckpts=abl)
+
+
+# ----------------------------------------------------------------------------- scripts
+
+
+def test_baseline_estimators_registry():
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        ests = cmp.baseline_estimators(["raw", "ecf", "robust", "nonsense"])
+    assert [e.name for e in ests] == ["Raw IMU", "ecf", "robust_eskf"]
+    assert any("nonsense" in str(x.message) for x in w)
+    from tcn_ahrs.train import baseline_estimators
+
+    assert [e.name for e in baseline_estimators(["raw", "eskf"])] == ["Raw IMU", "eskf"]
+
+
+def test_benchmark_dispatcher_mode_argument(monkeypatch):
+    spec = importlib.util.spec_from_file_location("benchmark_script", REPO / "scripts" / "benchmark.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    argv = ["benchmark.py", "accuracy", "data=broad"]
+    mod._mode_from_argv(argv)
+    assert argv == ["benchmark.py", "mode=accuracy", "data=broad"]
+    argv = ["benchmark.py", "data=broad"]
+    mod._mode_from_argv(argv)
+    assert argv == ["benchmark.py", "data=broad"]
+    with pytest.raises(SystemExit, match="unknown mode 'sped'"):
+        mod._mode_from_argv(["benchmark.py", "sped"])
+
+
+def test_shared_batch_of_variants_equals_separate_runs(sims):
+    """Default + tuned columns of one filter in one (P, R) call == each run alone."""
+    from tcn_ahrs.estimators.classical import Mahony
+
+    seqs = [sims[1], sims[2].slice(0, 600)]
+    q0s = [initial_quat(s) for s in seqs]
+    a = cmp.ClassicalMethod(Mahony(), 9, name="m")
+    b = cmp.ClassicalMethod(Mahony(k_p=0.3, k_i=0.0), 9, name="m (tuned)")
+    c = cmp.ClassicalMethod(Madgwick(), 9, name="g")
+    d = cmp.ClassicalMethod(Madgwick(beta=0.02), 9, name="g (tuned)")
+    ref = {e.name: e.run_batch(seqs, q0s) for e in (a, b)}
+    shared = cmp.share_batches([a, b, c, d])
+    assert shared == {"m": "m", "m (tuned)": "m"}  # beta=None (library default) cannot be stacked
+    for e in (b, a):
+        for out, r in zip(e.run_batch(seqs, q0s), ref[e.name]):
+            np.testing.assert_allclose(out.quat, r.quat, atol=1e-12)
+            assert out.quat.shape == r.quat.shape
