@@ -48,6 +48,23 @@ def check_shape(source, field_name: str, a: np.ndarray, shape: Tuple) -> np.ndar
     return a
 
 
+# ------------------------------------------------------------------------------------ HDF5
+def open_hdf5(path: Path):
+    """Open an HDF5 file for reading; a missing, empty or unreadable file raises one
+    :class:`DataError` naming it."""
+    import h5py
+
+    src = str(path)
+    if not path.is_file():
+        raise DataError(src, "file", "expected an HDF5 file, found nothing there")
+    if path.stat().st_size == 0:
+        raise DataError(src, "file", "expected an HDF5 file, the file is empty")
+    try:
+        return h5py.File(path, "r")
+    except OSError as e:
+        raise DataError(src, "file", f"expected a readable HDF5 file (truncated or corrupt?): {e}") from None
+
+
 # ------------------------------------------------------------------------------------- CSV
 def read_numeric_csv(path: Path, header: bool, ncols: Sequence[int] | None = None,
                      int_first_column: bool = False) -> Tuple[List[str], np.ndarray, np.ndarray | None]:

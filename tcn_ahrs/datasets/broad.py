@@ -17,7 +17,7 @@ from typing import Dict, List, Optional
 import numpy as np
 
 from ..sequence import DataError, ImuSequence
-from ._common import check_finite, check_shape
+from ._common import check_finite, check_shape, open_hdf5
 
 SUFFIXES = (".hdf5", ".h5")
 REQUIRED = ("imu_gyr", "imu_acc", "opt_quat")
@@ -63,18 +63,9 @@ def load_recording(root, name: str) -> ImuSequence:
 def load_file(path, name: Optional[str] = None, groups: Optional[List[str]] = None,
               description: Optional[str] = None) -> ImuSequence:
     """Load one BROAD HDF5 file (float32 or float64)."""
-    import h5py
-
     path = Path(path)
     src = str(path)
-    if not path.is_file():
-        raise DataError(src, "file", "expected an HDF5 file, found nothing there")
-    if path.stat().st_size == 0:
-        raise DataError(src, "file", "expected an HDF5 file, the file is empty")
-    try:
-        fh = h5py.File(path, "r")
-    except OSError as e:
-        raise DataError(src, "file", f"expected a readable HDF5 file (truncated or corrupt?): {e}") from None
+    fh = open_hdf5(path)
     with fh:
         missing = [k for k in REQUIRED if k not in fh]
         if missing:

@@ -41,7 +41,7 @@ import numpy as np
 
 from .. import conventions as conv
 from ..sequence import DataError, ImuSequence
-from ._common import check_finite, check_increasing, matrix_to_quat, quat_to_matrix, read_numeric_csv
+from ._common import check_finite, check_increasing, matrix_to_quat, open_hdf5, quat_to_matrix, read_numeric_csv
 
 SUFFIXES = (".csv", ".h5", ".hdf5")
 AXES = ("x", "y", "z")
@@ -128,17 +128,8 @@ def _read_csv(path: Path):
 
 
 def _read_hdf5(path: Path):
-    import h5py
-
     src = str(path)
-    if not path.is_file():
-        raise DataError(src, "file", "expected an HDF5 file, found nothing there")
-    if path.stat().st_size == 0:
-        raise DataError(src, "file", "expected an HDF5 file, the file is empty")
-    try:
-        fh = h5py.File(path, "r")
-    except OSError as e:
-        raise DataError(src, "file", f"expected a readable HDF5 file (truncated or corrupt?): {e}") from None
+    fh = open_hdf5(path)
     arrays = {}
     with fh:
         for key in ("t", "gyr", "acc"):
