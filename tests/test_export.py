@@ -25,7 +25,7 @@ N = 2000  # 20 s at 100 Hz
 
 CONFIGS = {
     # the paper's 9-axis model, raw pre-integration (Eq. 25)
-    "ahrs9_raw": dict(axes=9, variant="ahrs9"),
+    "ahrs9_raw": dict(axes=9, variant="ahrs9", preintegration="raw"),
     # 6-axis with the non-default 'denoised' pre-integration
     "ahrs6_denoised": dict(axes=6, variant="ahrs6", mag_net="none", use_mag_term=False,
                            preintegration="denoised"),

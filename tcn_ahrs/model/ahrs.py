@@ -48,7 +48,7 @@ class LearnedAHRS(nn.Module):
     def __init__(self, axes: int = 9, variant: str = "ahrs9", gyro_net: str = "tcn",
                  acc_net: str = "tcn", mag_net: str = "tcn", gyro_input: str = "all",
                  use_acc_term: bool = True, use_mag_term: bool = True, ecf: bool = True,
-                 preintegration: str = "raw", init_gain: float = 0.05,
+                 preintegration: str = "two_pass", init_gain: float = 0.05,
                  error_scale: Optional[Mapping[str, float]] = None, tcn: Optional[Mapping] = None):
         super().__init__()
         self.axes = int(axes)

@@ -78,7 +78,7 @@ class OpenLoopECF(nn.Module):
     """
 
     def __init__(self, use_acc: bool = True, use_mag: bool = True, init_gain: float = 0.05,
-                 preintegration: str = "raw"):
+                 preintegration: str = "two_pass"):
         super().__init__()
         if preintegration not in PREINTEGRATIONS:
             raise ValueError(f"preintegration {preintegration!r}: expected one of {PREINTEGRATIONS}")
