@@ -739,7 +739,8 @@ def compare_markdown(results: dict) -> str:
              "Bold: best in the row. `—`: not defined"
              + (f" (heading-free estimators {', '.join(hf)} are scored on inclination only)" if hf else "")
              + ".\n",
-             "## AAE / AYE (paper Tables 1/2 layout)\n",
+             "## Averages over recordings (deg)\n", averages_markdown(results),
+             "\n## AAE / AYE (paper Tables 1/2 layout)\n",
              markdown_table(results, ("aae_deg", "aye_deg"))]
     broad = _has(results, "total_deg")
     if broad:
@@ -772,6 +773,20 @@ def compare_markdown(results: dict) -> str:
     if tm:
         parts.append(f"\nWall time: tuning {tm['tune_s']} s, evaluation {tm['evaluate_s']} s, total {tm['total_s']} s.\n")
     return "\n".join(parts)
+
+
+def averages_markdown(results: dict) -> str:
+    """Markdown: one row per method (column of the big tables) with its mean over recordings of
+    every metric present — the compact summary a README quotes."""
+    keys = [k for k in ("aae_deg", "aye_deg", "total_deg", "heading_deg", "inclination_deg")
+            if any((m.get("mean") or {}).get(k) is not None for m in results["methods"].values())]
+    names = {"aae_deg": "AAE", "aye_deg": "AYE", "total_deg": "BROAD total", "heading_deg": "BROAD heading",
+             "inclination_deg": "inclination"}
+    lines = ["| method | " + " | ".join(names[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
+    for name, m in results["methods"].items():
+        mean = m.get("mean") or {}
+        lines.append(f"| {name} | " + " | ".join("—" if mean.get(k) is None else f"{mean[k]:.2f}" for k in keys) + " |")
+    return "\n".join(lines)
 
 
 def average_rows(results: dict, keys: Sequence[str] = ("aae_deg", "aye_deg", "inclination_deg")) -> str:
