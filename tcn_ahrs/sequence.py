@@ -8,7 +8,7 @@ Arrays are numpy float64 (I/O side); models and filters convert to tensors thems
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Optional
+from typing import Optional
 
 import numpy as np
 

@@ -10,8 +10,6 @@
 from __future__ import annotations
 
 import math
-import os
-import sys
 import time
 import warnings
 from pathlib import Path

@@ -35,6 +35,14 @@ def to_tensor(x, dtype: Optional[torch.dtype] = None, device=None) -> Tensor:
     return torch.as_tensor(np.asarray(x), dtype=dtype or DEFAULT_DTYPE, device=device)
 
 
+def converter_like(gyro):
+    """``T(x)``: convert any filter input (or parameter) to a tensor with the gyro's float dtype
+    (float64 when the gyro is not a float tensor) and device; ``T(None)`` is ``None``."""
+    dtype = gyro.dtype if isinstance(gyro, Tensor) and gyro.is_floating_point() else DEFAULT_DTYPE
+    dev = gyro.device if isinstance(gyro, Tensor) else None
+    return lambda x: None if x is None else to_tensor(x, dtype, dev)
+
+
 def flatten_batch(items: Sequence[Tuple[Optional[Tensor], int]]) -> Tuple[torch.Size, List[Optional[Tensor]]]:
     """Broadcast tensors to one batch shape and flatten it.
 

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from .. import so3
 from ..conventions import GRAVITY
-from .common import elapsed, flatten_batch, gain_schedule, normalize, to_tensor, unflatten
+from .common import converter_like, elapsed, flatten_batch, gain_schedule, normalize, unflatten
 
 
 def ecf(
@@ -65,11 +65,8 @@ def ecf(
         ``quat`` (..., N, 4); ``acc_used``, ``mag_used`` (..., N) bool (Eq. 7 decisions);
         ``gain`` (..., N) the scheduled K (1/s).
     """
-    dtype = gyro.dtype if isinstance(gyro, Tensor) and gyro.is_floating_point() else torch.float64
-    dev = gyro.device if isinstance(gyro, Tensor) else None
-    T = lambda x: to_tensor(x, dtype, dev)  # noqa: E731
-    gyro, accel, dt, q0 = T(gyro), T(accel), T(dt), T(q0)
-    mag = None if mag is None else T(mag)
+    T = converter_like(gyro)
+    gyro, accel, dt, q0, mag = T(gyro), T(accel), T(dt), T(q0), T(mag)
     params = [T(p) for p in (k_norm, k_init, t_init, a_min, m_min, m_max)]
     batch, flat = flatten_batch(
         [(gyro, 2), (accel, 2), (dt, 1), (q0, 1), (mag, 2)] + [(p, 0) for p in params]

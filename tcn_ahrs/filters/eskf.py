@@ -62,7 +62,7 @@ from torch import Tensor
 
 from .. import so3
 from ..conventions import GRAVITY
-from .common import flatten_batch, normalize, to_tensor, unflatten
+from .common import converter_like, flatten_batch, normalize, unflatten
 
 
 @functools.lru_cache(maxsize=64)
@@ -163,12 +163,10 @@ def eskf(
         P's attitude diagonal); robust only: ``acc_gated``, ``mag_gated`` (..., N) bool,
         ``mahalanobis_acc``, ``mahalanobis_mag``, ``fading`` (..., N).
     """
-    dtype = gyro.dtype if isinstance(gyro, Tensor) and gyro.is_floating_point() else torch.float64
-    dev = gyro.device if isinstance(gyro, Tensor) else None
-    T = lambda x: to_tensor(x, dtype, dev)  # noqa: E731
-    gyro, accel, dt, q0 = T(gyro), T(accel), T(dt), T(q0)
-    mag = None if mag is None else T(mag)
-    bias0 = torch.zeros(3, dtype=dtype, device=dev) if bias0 is None else T(bias0)
+    T = converter_like(gyro)
+    gyro, accel, dt, q0, mag = T(gyro), T(accel), T(dt), T(q0), T(mag)
+    dtype, dev = gyro.dtype, gyro.device
+    bias0 = T(torch.zeros(3) if bias0 is None else bias0)
     a_norm_all = torch.linalg.vector_norm(accel, dim=-1)
     if mag is not None:
         m_norm_all = torch.linalg.vector_norm(mag, dim=-1)

@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
-from .common import flatten_batch, normalize, nwu_from_enu_quat, to_tensor, unflatten
+from .common import converter_like, flatten_batch, normalize, nwu_from_enu_quat, unflatten
 
 BETA_IMU = 0.033
 BETA_MARG = 0.041
@@ -92,11 +92,9 @@ def madgwick(
     """
     if beta is None:
         beta = BETA_IMU if mag is None else BETA_MARG
-    dtype = gyro.dtype if isinstance(gyro, Tensor) and gyro.is_floating_point() else torch.float64
-    dev = gyro.device if isinstance(gyro, Tensor) else None
-    T = lambda x: to_tensor(x, dtype, dev)  # noqa: E731
-    gyro, accel, dt, q0 = T(gyro), T(accel), T(dt), T(q0)
-    mag = None if mag is None else T(mag)
+    T = converter_like(gyro)
+    gyro, accel, dt, q0, mag = T(gyro), T(accel), T(dt), T(q0), T(mag)
+    dtype = gyro.dtype
     batch, flat = flatten_batch([(gyro, 2), (accel, 2), (dt, 1), (q0, 1), (mag, 2), (T(beta), 0)])
     gyro, accel, dt, q0, mag, beta = flat
     n = gyro.shape[1]

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
-from .common import flatten_batch, normalize, to_tensor, unflatten
+from .common import converter_like, flatten_batch, normalize, unflatten
 
 
 def mahony(
@@ -53,12 +53,9 @@ def mahony(
     Returns:
         ``quat`` (..., N, 4); ``gyro_bias`` (..., N, 3) rad/s (the bias estimate after sample k).
     """
-    dtype = gyro.dtype if isinstance(gyro, Tensor) and gyro.is_floating_point() else torch.float64
-    dev = gyro.device if isinstance(gyro, Tensor) else None
-    T = lambda x: to_tensor(x, dtype, dev)  # noqa: E731
-    gyro, accel, dt, q0 = T(gyro), T(accel), T(dt), T(q0)
-    mag = None if mag is None else T(mag)
-    bias0 = torch.zeros(3, dtype=dtype, device=dev) if bias0 is None else T(bias0)
+    T = converter_like(gyro)
+    gyro, accel, dt, q0, mag = T(gyro), T(accel), T(dt), T(q0), T(mag)
+    bias0 = T(torch.zeros(3) if bias0 is None else bias0)
     batch, flat = flatten_batch(
         [(gyro, 2), (accel, 2), (dt, 1), (q0, 1), (mag, 2), (bias0, 1), (T(k_p), 0), (T(k_i), 0)]
     )

@@ -18,7 +18,7 @@ m/s^2, uT. Shapes: imu (B, N, C) with C = 6 (gyro, acc) or 9 (gyro, acc, mag).
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Sequence
+from typing import Dict, Optional
 
 import torch
 from torch import Tensor, nn
