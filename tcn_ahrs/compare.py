@@ -335,7 +335,7 @@ def method_specs(methods: Sequence[str], data_axes: int = 9, both_axes: bool = T
     return specs
 
 
-def build_estimator(spec: MethodSpec, device: str = "cpu"):
+def build_estimator(spec: MethodSpec, device: str = "cpu", reanchor: Optional[int] = None):
     """The estimator of one spec (raises :class:`~tcn_ahrs.estimators.peers.PeerUnavailable`
     when a peer's library is missing)."""
     if spec.kind == "raw":
@@ -345,7 +345,7 @@ def build_estimator(spec: MethodSpec, device: str = "cpu"):
     if spec.kind == "learned":
         from .estimators.learned import LearnedEstimator
 
-        return LearnedEstimator(spec.ckpt, name=spec.name, device=device)
+        return LearnedEstimator(spec.ckpt, name=spec.name, device=device, reanchor=reanchor)
     if spec.kind == "classical":
         cls = CLASSICAL_CLASSES[spec.method]
         return ClassicalMethod(cls(device=device, **spec.params), spec.axes, name=spec.name)
@@ -356,7 +356,8 @@ def build_estimator(spec: MethodSpec, device: str = "cpu"):
     return est
 
 
-def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu") -> Tuple[list, List[MethodSpec]]:
+def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu",
+                     reanchor: Optional[int] = None) -> Tuple[list, List[MethodSpec]]:
     """Estimators of ``specs``; peers whose library is missing are skipped with ONE warning
     naming them. Returns ``(estimators, specs_kept)``."""
     from .estimators.peers import INSTALL_HINT, PeerUnavailable
@@ -364,7 +365,7 @@ def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu") -> Tuple[
     out, kept, missing = [], [], []
     for s in specs:
         try:
-            out.append(build_estimator(s, device))
+            out.append(build_estimator(s, device, reanchor))
             kept.append(s)
         except PeerUnavailable as e:
             missing.append(f"{s.name} ({e})")
@@ -598,6 +599,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
             tune_max_seconds_per_recording: Optional[float] = 60.0, tune_lead_seconds: float = 10.0,
             tune_recordings: Optional[int] = None, tune_max_batch: int = 128, dataset: Optional[str] = None,
             plots: bool = False, trajectories: bool = False, align: bool = True, device: str = "cpu",
+            reanchor: Optional[int] = None,
             verbose: bool = False, progress: bool = True, extra: Optional[dict] = None) -> dict:
     """Build, tune, evaluate, write tables.
 
@@ -657,7 +659,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
                                    tune_recordings, tune_max_batch, device, progress))
     tune_s = time.perf_counter() - t0
 
-    estimators, specs = build_estimators(specs, device)
+    estimators, specs = build_estimators(specs, device, reanchor)
     shared = share_batches(estimators)
     if progress:
         estimators = [_timed(e) for e in estimators]
@@ -805,7 +807,7 @@ def average_rows(results: dict, keys: Sequence[str] = ("aae_deg", "aye_deg", "in
 
 COMPARE_KEYS = {"methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_max_seconds_per_recording",
                 "tune_lead_seconds", "tune_recordings", "tune_max_batch", "ckpts", "ablation_ckpts", "out", "plots",
-                "trajectories", "align", "device", "threads", "verbose"}
+                "trajectories", "align", "device", "threads", "verbose", "reanchor"}
 BENCHMARK_KEYS = COMPARE_KEYS | {"mode", "ckpt", "ckpt_label", "speed", "quick"}  # speed/quick: speed mode
 
 
@@ -867,6 +869,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
                   dataset=str(cfg.data.name), plots=bool(cfg.get("plots", False)),
                   trajectories=bool(cfg.get("trajectories", False)), align=bool(cfg.get("align", True)),
                   device=str(cfg.get("device", "cpu")), verbose=bool(cfg.get("verbose", False)),
+                  reanchor=cfg.get("reanchor"),
                   extra={"split": split, "tune_split": tune_split if cfg.get("tune") else None,
                          "config": _plain(cfg), "load_s": round(load_s, 2)})
     print(f"results in {out}")

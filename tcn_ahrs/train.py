@@ -255,7 +255,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
     return result
 
 
-EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "device", "plots", "trajectories", "name", "threads", "align"}
+EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "device", "plots", "trajectories", "name", "threads", "align", "reanchor"}
 
 
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
@@ -278,7 +278,8 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
                          f"'{cfg.data.split}' (root {cfg.data.get('root')})")
     out = cfg.get("out") or str(_run_dir(cfg))
-    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "TCN-ECF"), device=str(cfg.get("device", "cpu")))
+    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "TCN-ECF"), device=str(cfg.get("device", "cpu")),
+                               reanchor=cfg.get("reanchor"))
     estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []))
     res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),
                    plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),

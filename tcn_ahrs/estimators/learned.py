@@ -27,7 +27,7 @@ class LearnedEstimator:
     """
 
     def __init__(self, model: Union[LearnedAHRS, str, Path], name: str = "TCN-ECF",
-                 device: Union[str, torch.device] = "cpu"):
+                 device: Union[str, torch.device] = "cpu", reanchor: Optional[int] = None):
         if isinstance(model, (str, Path)):
             self.ckpt_path = str(model)
             model = model_from_checkpoint(model)
@@ -36,6 +36,9 @@ class LearnedEstimator:
         self.model = model.to(device).eval()
         self.device = torch.device(device)
         self.name = name
+        # restart the open-loop ECF from the estimate every `reanchor` samples
+        # (LearnedAHRS.run_sequence); None = the paper's single pass
+        self.reanchor = None if reanchor is None else int(reanchor)
 
     @property
     def axes(self) -> int:
@@ -59,7 +62,7 @@ class LearnedEstimator:
             q0 = torch.as_tensor(np.asarray(init_quat, dtype=np.float64).reshape(4))
         r0 = so3.quat_to_matrix(q0).to(self.device)[None]
         with torch.no_grad():
-            out = self.model.run_sequence(imu, dt, r0, start)
+            out = self.model.run_sequence(imu, dt, r0, start, reanchor=self.reanchor)
         quat = so3.matrix_to_quat(out["rot"][0]).cpu().numpy()
         sig = {
             "gyro_correction": (out["omega"][0] - imu[0, :, 0:3]).cpu().double().numpy(),
