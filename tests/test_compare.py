@@ -260,7 +260,8 @@ def test_ablation_table_layout(sims, tmp_path, monkeypatch):
 
     real_build = cmp.build_estimator
     monkeypatch.setattr(cmp, "build_estimator",
-                        lambda spec, device="cpu": Fake(spec.name) if spec.kind == "learned" else real_build(spec, device))
+                        lambda spec, device="cpu", reanchor=None: (Fake(spec.name) if spec.kind == "learned"
+                                                                   else real_build(spec, device, reanchor)))
     abl = {"full": "a.ckpt", "w/o mag term": "b.ckpt", "w/o acc term": "c.ckpt", "w/o both": "d.ckpt"}
     res = cmp.compare(sims[1:], (), methods=["raw"], tune=False, ckpts={"full": "a.ckpt"},
                       ablation_ckpts=abl, out_dir=tmp_path, verbose=False)
