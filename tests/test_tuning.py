@@ -9,7 +9,7 @@ from tcn_ahrs.estimators.classical import ESEKF, ClosedLoopECF, Madgwick, Mahony
 from tcn_ahrs.sequence import ImuSequence
 from tcn_ahrs.tuning import evaluate_params, grid_combinations, tune_gradient, tune_grid
 
-from test_filters import simulate, wavy
+from synthetic_filters import simulate, wavy
 
 
 @pytest.fixture(scope="module")
