@@ -780,9 +780,9 @@ def compare_markdown(results: dict) -> str:
 def averages_markdown(results: dict) -> str:
     """Markdown: one row per method (column of the big tables) with its mean over recordings of
     every metric present — the compact summary a README quotes."""
-    keys = [k for k in ("aae_deg", "aye_deg", "total_deg", "heading_deg", "inclination_deg")
+    keys = [k for k in ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
             if any((m.get("mean") or {}).get(k) is not None for m in results["methods"].values())]
-    names = {"aae_deg": "AAE", "aye_deg": "AYE", "total_deg": "BROAD total", "heading_deg": "BROAD heading",
+    names = {"aae_deg": "AAE", "aye_deg": "AYE", "ahe_deg": "AHE", "total_deg": "BROAD total", "heading_deg": "BROAD heading",
              "inclination_deg": "inclination"}
     lines = ["| method | " + " | ".join(names[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
     for name, m in results["methods"].items():
@@ -873,7 +873,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
                   extra={"split": split, "tune_split": tune_split if cfg.get("tune") else None,
                          "config": _plain(cfg), "load_s": round(load_s, 2)})
     print(f"results in {out}")
-    print(average_rows(res, ("aae_deg", "aye_deg", "total_deg", "heading_deg", "inclination_deg")))
+    print(average_rows(res, ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")))
     return res
 
 

@@ -76,21 +76,29 @@ class SequenceStore:
         idx = starts.to(self._device).long()[:, None] + torch.arange(length, device=self._device)
         return {k: v[idx] for k, v in self.tensors.items()}
 
+    def recording_end(self, flat_index: Tensor) -> Tensor:
+        """(B,) flat indices -> (B,) one past the last flat index of their recordings."""
+        ends = torch.as_tensor(self.offsets + np.asarray(self.lengths), device=flat_index.device)
+        starts = torch.as_tensor(self.offsets, device=flat_index.device)
+        i = torch.searchsorted(starts, flat_index, right=True) - 1
+        return ends[i]
+
     def sequence(self, i: int) -> Dict[str, Tensor]:
         """Recording i as a batch of one: dict of (1, N_i, ...)."""
         a, n = int(self.offsets[i]), self.lengths[i]
         return {k: v[a:a + n].unsqueeze(0) for k, v in self.tensors.items()}
 
 
-def window_starts(store: SequenceStore, window: int, stride: int) -> Tensor:
+def window_starts(store: SequenceStore, window: int, stride: int, margin: int = 0) -> Tensor:
     """Start indices (into the flat store) of windows of ``window`` samples lying inside one
-    recording with valid ground truth at their first sample, every ``stride`` samples."""
+    recording with valid ground truth at their first sample, every ``stride`` samples, at least
+    ``margin`` samples after the recording's start (the causal networks' warm-up context)."""
     valid = store.tensors["valid"].cpu().numpy()
     out = []
     for off, n in zip(store.offsets, store.lengths):
-        if n < window:
+        if n < window + margin:
             continue
-        s = off + np.arange(0, n - window + 1, stride)
+        s = off + np.arange(margin, n - window + 1, stride)
         out.append(s[valid[s]])
     starts = np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
     if starts.size == 0:
@@ -143,8 +151,9 @@ class AHRSDataModule(pl.LightningDataModule):
 
     def __init__(self, data_cfg: Optional[Mapping], axes: int, window: int, stride: int,
                  batch_size: int, train_seqs: Optional[List[ImuSequence]] = None,
-                 val_seqs: Optional[List[ImuSequence]] = None):
+                 val_seqs: Optional[List[ImuSequence]] = None, margin: int = 0):
         super().__init__()
+        self.margin = int(margin)
         self.data_cfg = data_cfg
         self.axes = int(axes)
         self.window = int(window)
@@ -169,13 +178,13 @@ class AHRSDataModule(pl.LightningDataModule):
             if self.val_seqs is None:
                 self.val_seqs = load_split(self.data_cfg, "val")
         keep = [s for s in self.train_seqs if s.has_gt and s.quat_valid.any()]
-        longest = max((len(s) for s in keep), default=0)
+        longest = max((len(s) for s in keep), default=0) - self.margin
         if longest < self.window:
             warnings.warn(f"training window {self.window} is longer than every training recording "
                           f"(longest {longest}); using {longest}")
             self.window = longest
         self.train_store = SequenceStore(keep, self.axes)
-        self.starts = window_starts(self.train_store, self.window, self.stride)
+        self.starts = window_starts(self.train_store, self.window, self.stride, self.margin)
         vals = [s for s in self.val_seqs if s.has_gt and s.quat_valid.sum() > 1]
         self.val_store = SequenceStore(vals, self.axes) if vals else None
 

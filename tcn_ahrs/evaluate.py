@@ -54,12 +54,13 @@ from .estimators.base import initial_quat
 from .metrics import attitude_errors, align_to_first, broad_errors, sequence_metrics
 from .sequence import ImuSequence
 
-METRIC_KEYS = ("aae_deg", "aye_deg", "total_deg", "heading_deg", "inclination_deg")
+METRIC_KEYS = ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
 """Numeric per-recording metrics that are averaged (means, groups)."""
 
 LABELS = {
     "aae_deg": "AAE",
     "aye_deg": "AYE",
+    "ahe_deg": "AHE",
     "total_deg": "total",
     "heading_deg": "heading",
     "inclination_deg": "incl.",
@@ -191,7 +192,7 @@ def evaluate(
                 m["inclination_deg"] = broad_errors(seq.quat, quat, seq.scored(), "6d")["inclination_deg"]
             if heading_free:
                 # no heading reference (RIANN): only the inclination is meaningful
-                for k in ("aae_deg", "aye_deg", "total_deg", "heading_deg"):
+                for k in ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg"):
                     m[k] = float("nan")
             row = {"name": seq.name, "n_samples": len(seq), "duration_s": seq.duration,
                    "axes": seq_in.num_axes, **m, "run_time_s": run_time}
@@ -306,8 +307,9 @@ def results_markdown(results: dict) -> str:
     title = results.get("dataset") or "evaluation"
     parts = [f"# Results: {title}\n",
              f"AAE / AYE in degrees (RMS over scored samples; alignment at the first scored sample: "
-             f"{'yes' if results.get('align', True) else 'no'}).\n",
-             markdown_table(results, ("aae_deg", "aye_deg"))]
+             f"{'yes' if results.get('align', True) else 'no'}); AHE: heading error about the "
+             f"navigation vertical, aligned the same way.\n",
+             markdown_table(results, ("aae_deg", "aye_deg", "ahe_deg"))]
     broad_keys = ("total_deg", "heading_deg", "inclination_deg")
     if _has(results, "total_deg"):
         parts += ["\n## BROAD errors\n",
@@ -325,7 +327,7 @@ def print_table(results: dict, metric_keys: Optional[Iterable[str]] = None, file
     """Plain-text table for terminals: rows recordings (+ Average), columns method × metric."""
     file = file or sys.stdout
     if metric_keys is None:
-        metric_keys = ["aae_deg", "aye_deg"] + [k for k in ("total_deg", "heading_deg", "inclination_deg")
+        metric_keys = ["aae_deg", "aye_deg", "ahe_deg"] + [k for k in ("total_deg", "heading_deg", "inclination_deg")
                                                 if _has(results, k)]
     metric_keys = list(metric_keys)
     methods = list(results["methods"])

@@ -99,3 +99,18 @@ def increment_loss(omega: Tensor, dt: Tensor, nav_from_body_gt: Tensor, valid: T
         per = F.smooth_l1_loss(err[m], torch.zeros_like(err[m]), beta=huber_delta, reduction="mean")
         total = total + per.to(omega.dtype)
     return total
+
+
+def attitude_loss(nav_from_body: Tensor, nav_from_body_gt: Tensor, valid: Tensor,
+                  huber_delta: float = 0.01) -> Tensor:
+    """Loss of a closed-loop estimate against ground truth: mean over valid samples and
+    components of Huber(e)/δ with ``e = vee(C_gt^T Ĉ)`` (= sin θ · axis: the rotation error to
+    first order, smooth at zero).
+
+    nav_from_body (B, N, 3, 3) estimate; nav_from_body_gt (B, N, 3, 3); valid (B, N) bool.
+    A scalar (0 if nothing is valid)."""
+    if not bool(valid.any()):
+        return nav_from_body.sum() * 0.0
+    est = nav_from_body[valid]
+    e = so3.vee(nav_from_body_gt[valid].to(est.dtype).transpose(-1, -2) @ est)
+    return F.smooth_l1_loss(e, torch.zeros_like(e), beta=huber_delta, reduction="mean")

@@ -26,6 +26,12 @@ AYE — absolute yaw error (paper Eq. 30)
     ``AYE = sqrt( mean_k wrap(yaw(R_est'[k]) - yaw(R_gt[k]))^2 )`` in degrees, with
     ``yaw`` the z-y'-x'' heading in ENU (:func:`tcn_ahrs.so3.yaw`) and ``wrap`` to (-180, 180].
 
+AHE — absolute heading error (about the navigation vertical)
+    ``AHE = sqrt( mean_k wrap(heading(q_gt[k] ⊗ q_est'[k]^-1))^2 )`` in degrees, aligned like
+    AAE: the heading part of the earth-frame error, as in BROAD's decomposition below. Unlike
+    AYE (an Euler angle) it stays defined when the body x axis is near vertical (EuRoC's IMU),
+    where the z-y'-x'' yaw difference jumps although the attitude error is small.
+
 BROAD errors (Laidig et al., "BROAD — A Benchmark for Robust Inertial Orientation
 Estimation", Data 6(7), 2021) — no alignment
     The error quaternion is expressed in the earth (navigation) frame,
@@ -147,6 +153,18 @@ def aae(q_gt, q_est, mask=None, align: bool = True) -> float:
     return _rms(angle[m]) * RAD2DEG
 
 
+def ahe(q_gt, q_est, mask=None, align: bool = True) -> float:
+    """Absolute heading error, degrees: RMS over scored samples of the heading part (rotation
+    about the navigation vertical) of the earth-frame error of the aligned estimate."""
+    qg, qe = _as_quat(q_gt, "quat_gt"), _as_quat(q_est, "quat_est")
+    m = _scored_mask(qg, qe, mask)
+    if not m.any():
+        return float("nan")
+    if align:
+        qe = torch.as_tensor(align_to_first(qg, qe, m))
+    return _rms(broad_error_angles(qg[m], qe[m])["heading"]) * RAD2DEG
+
+
 def aye(q_gt, q_est, mask=None, align: bool = True) -> float:
     """Absolute yaw error (paper Eq. 30), degrees: RMS over scored samples of the wrapped
     z-y'-x'' yaw difference."""
@@ -217,7 +235,7 @@ def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align: bool = Tr
         axes:     9 if the estimate used the magnetometer, 6 if not; ``None``: ``seq.num_axes``.
         align:    alignment at the first scored sample for AAE/AYE (BROAD errors never align).
     Returns:
-        ``n_scored``, ``aae_deg``, ``aye_deg``; plus BROAD's ``total_deg``, ``heading_deg``,
+        ``n_scored``, ``aae_deg``, ``aye_deg``, ``ahe_deg``; plus BROAD's ``total_deg``, ``heading_deg``,
         ``inclination_deg`` (and ``broad_mode``) when the recording has a magnetometer and
         the estimate is 9-axis (``"9d"``), or when the recording carries a benchmark score mask
         (BROAD) and the estimate is 6-axis (``"6d"``, heading offset removed).
@@ -235,6 +253,7 @@ def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align: bool = Tr
     angle, dyaw = attitude_errors(seq.quat, qe, m, align)
     out["aae_deg"] = _rms(angle[m]) * RAD2DEG
     out["aye_deg"] = _rms(dyaw[m]) * RAD2DEG
+    out["ahe_deg"] = ahe(seq.quat, qe, m, align)
     mode = None
     if axes == 9 and seq.has_mag:
         mode = "9d"

@@ -23,11 +23,12 @@ from omegaconf import DictConfig, OmegaConf
 from . import so3
 from .checkpoint import AtomicCheckpointIO, CheckpointError, check_layout, layout_meta, load_checkpoint
 from .data import AHRSDataModule, augment
-from .losses import increment_loss
+from .losses import attitude_loss, increment_loss
 from .model.ahrs import LearnedAHRS
 
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
-              "huber_delta", "noise", "monitor", "max_time", "limit_train_batches"}
+              "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
+              "attitude_delta"}
 
 
 class AHRSModule(pl.LightningModule):
@@ -38,12 +39,13 @@ class AHRSModule(pl.LightningModule):
                  weight_decay: float = 0.1, epochs: int = 100, window: int = 2000,
                  loss_js: List[int] = (16, 32), huber_delta: float = 0.005,
                  noise: Optional[Dict[str, float]] = None, data_name: str = "",
-                 rate_hz: Optional[float] = None):
+                 rate_hz: Optional[float] = None, stream_chunks: int = 8, attitude_delta: float = 0.01):
         super().__init__()
         self.save_hyperparameters()
         self.model = LearnedAHRS.from_config(model_cfg, axes=axes)
         self.loss_js = [int(j) for j in loss_js]
         self.noise = dict(noise or {})
+        self._stream: Optional[Dict[str, torch.Tensor]] = None  # closed-loop TBPTT state
 
     # ------------------------------------------------------------------ steps
     def _store(self, which: str):
@@ -52,6 +54,8 @@ class AHRSModule(pl.LightningModule):
 
     def training_step(self, batch, batch_idx):
         (starts,) = batch
+        if self.model.closed is not None:
+            return self._closed_loop_step(starts)
         w = self._store("train_store").gather(starts, self.trainer.datamodule.window)
         imu = augment(w["imu"], self.noise)
         out = self.model(imu, w["dt"], w["rot"][:, 0])
@@ -61,7 +65,92 @@ class AHRSModule(pl.LightningModule):
                  batch_size=starts.shape[0], sync_dist=True)
         return loss
 
+    def _closed_loop_step(self, starts: torch.Tensor):
+        """Truncated backpropagation through the closed loop over chained chunks.
+
+        B streams run through the training recordings; each training step advances every
+        stream by one chunk of ``window`` samples from its carried (detached) filter state, so
+        the filter is trained in the state it runs in at inference — including a gyro-bias state
+        that has converged over earlier chunks — while gradients stay within one chunk. A stream
+        restarts (at a new random window start, from ground truth, zero bias, a new random
+        constant gyro offset ``noise.gyro_bias``) after ``stream_chunks`` chunks or at the end of
+        its recording. The networks see ``receptive_field - 1`` samples of context before each
+        chunk (the window starts leave that margin)."""
+        store = self._store("train_store")
+        L = int(self.trainer.datamodule.window)
+        ctx = int(self.model.receptive_field) - 1
+        starts = starts.to(self.device)
+        b = starts.shape[0]
+        st = self._stream
+        if st is None or st["pos"].shape[0] != b:
+            reset = torch.ones(b, dtype=torch.bool, device=self.device)
+            st = {"pos": starts.clone(), "left": torch.zeros(b, dtype=torch.long, device=self.device),
+                  "rot": torch.zeros(b, 3, 3, device=self.device), "bias": torch.zeros(b, 3, device=self.device),
+                  "offset": torch.zeros(b, 3, device=self.device)}
+        else:
+            reset = (st["left"] <= 0) | (st["pos"] + L > store.recording_end(st["pos"]))
+        if bool(reset.any()):
+            st["pos"] = torch.where(reset, starts, st["pos"])
+            st["left"] = torch.where(reset, torch.full_like(st["left"], int(self.hparams.stream_chunks)), st["left"])
+            st["rot"] = torch.where(reset[:, None, None], store.tensors["rot"][st["pos"]], st["rot"])
+            st["bias"] = torch.where(reset[:, None], torch.zeros_like(st["bias"]), st["bias"])
+            off = torch.randn_like(st["offset"]) * float(self.noise.get("gyro_bias", 0.0))
+            st["offset"] = torch.where(reset[:, None], off, st["offset"])
+        w = store.gather(st["pos"] - ctx, L + ctx)
+        imu = augment(w["imu"], self.noise)
+        imu = torch.cat([imu[..., 0:3] + st["offset"][:, None], imu[..., 3:]], -1)
+        out = self.model.filter_closed_loop(imu, w["dt"], st["rot"], st["bias"], context=ctx)
+        valid = w["valid"][:, ctx:].clone()
+        valid[:, 0] = False  # the initial state is given, not estimated
+        loss = attitude_loss(out["rot"], w["rot"][:, ctx:], valid, float(self.hparams.attitude_delta))
+        # carried on detached and re-orthonormalised (float32 round-off over many chunks)
+        st["rot"] = so3.quat_to_matrix(so3.matrix_to_quat(out["rot"][:, -1].detach()))
+        st["bias"] = out["gyro_bias"][:, -1].detach()
+        st["pos"] = st["pos"] + (L - 1)
+        st["left"] = st["left"] - 1
+        self._stream = st
+        self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=b, sync_dist=True)
+        return loss
+
+    def _closed_loop_validation(self):
+        """All validation recordings in one padded closed-loop pass (the loop costs the same for
+        B recordings as for one). Each starts at its first valid ground truth; padding has
+        dt = 0 and is not scored. Logs the mean over recordings of AAE and of the loss."""
+        store = self._store("val_store")
+        seqs = []
+        for i in range(len(store.lengths)):
+            s = store.sequence(i)
+            k0 = int(torch.argmax(s["valid"][0].to(torch.int8)))
+            seqs.append({k: v[:, k0:] for k, v in s.items()})
+        n = max(s["imu"].shape[1] for s in seqs)
+
+        def pad(x, fill_last: bool):
+            extra = n - x.shape[1]
+            if extra == 0:
+                return x
+            tail = x[:, -1:].expand(-1, extra, *x.shape[2:]) if fill_last else torch.zeros_like(x[:, :1]).expand(-1, extra, *x.shape[2:])
+            return torch.cat([x, tail], 1)
+
+        imu = torch.cat([pad(s["imu"], True) for s in seqs])
+        dt = torch.cat([pad(s["dt"], False) for s in seqs])
+        rot_gt = torch.cat([pad(s["rot"], True) for s in seqs])
+        valid = torch.cat([pad(s["valid"], False) for s in seqs])
+        out = self.model.filter_closed_loop(imu, dt, rot_gt[:, 0].double(), dtype=torch.float64)
+        aaes, losses = [], []
+        for i in range(len(seqs)):
+            m = valid[i]
+            err = so3.log(rot_gt[i, m].double().transpose(-1, -2) @ out["rot"][i, m])
+            aaes.append(torch.sqrt((err ** 2).sum(-1).mean()) * (180.0 / math.pi))
+            losses.append(attitude_loss(out["rot"][i:i + 1], rot_gt[i:i + 1], valid[i:i + 1],
+                                        float(self.hparams.attitude_delta)))
+        self.log("val/loss", torch.stack(losses).mean().float(), prog_bar=True, batch_size=1)
+        self.log("val/aae_deg", torch.stack(aaes).mean().float(), prog_bar=True, batch_size=1)
+
     def validation_step(self, batch, batch_idx):
+        if self.model.closed is not None:
+            if batch_idx == 0:
+                self._closed_loop_validation()
+            return
         i = int(batch[0])
         s = self._store("val_store").sequence(i)
         valid = s["valid"]
@@ -189,14 +278,18 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
     axes = model_axes(cfg)
     model_cfg = _plain(cfg.model)
     model_cfg["axes"] = axes
-    LearnedAHRS.from_config(model_cfg)  # fail early on a bad model config
+    probe = LearnedAHRS.from_config(model_cfg)  # fail early on a bad model config
+    # the closed loop trains on chained chunks whose networks see receptive_field - 1 samples before
+    margin = probe.receptive_field - 1 if probe.closed is not None else 0
 
     dm = AHRSDataModule(cfg.data, axes, cfg.train.window, cfg.train.stride, cfg.train.batch_size,
-                        train_seqs, val_seqs)
+                        train_seqs, val_seqs, margin=margin)
     dm.prepare()
     module = AHRSModule(model_cfg, axes, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay),
                         epochs=int(cfg.train.epochs), window=dm.window, loss_js=list(cfg.train.loss_js),
                         huber_delta=float(cfg.train.huber_delta), noise=_plain(cfg.train.noise),
+                        stream_chunks=int(cfg.train.get("stream_chunks") or 8),
+                        attitude_delta=float(cfg.train.get("attitude_delta") or 0.01),
                         data_name=str(cfg.data.name),
                         # the rate the model learned at (its TCN's time scale), for deployment
                         rate_hz=float(np.median([s.rate for s in dm.train_seqs])))

@@ -88,7 +88,8 @@ def test_raw_integration_is_exact_and_files_are_written(tmp_path, sequences):
     assert loaded["methods"]["Raw IMU"]["groups"]["yaw_only"]["n_recordings"] == 1
 
     md = (tmp_path / "results.md").read_text()
-    assert "| Sequence | Raw IMU AAE | Raw IMU AYE | Offset 2deg AAE | Offset 2deg AYE |" in md
+    assert ("| Sequence | Raw IMU AAE | Raw IMU AYE | Raw IMU AHE | Offset 2deg AAE | Offset 2deg AYE | Offset 2deg AHE |"
+            in md)
     assert "| Average |" in md and "| tumble |" in md and "## Group averages" in md
 
     for m in ("Raw IMU", "Offset 2deg"):

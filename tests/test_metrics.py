@@ -189,4 +189,26 @@ def test_sequence_metrics_keys_and_values():
     assert r_na["aye_deg"] == pytest.approx(5.0, abs=1e-9)
     seq6 = _seq(gt, mag=False)
     r = metrics.sequence_metrics(seq6, est)
-    assert set(r) == {"n_scored", "aae_deg", "aye_deg"}
+    assert set(r) == {"n_scored", "aae_deg", "aye_deg", "ahe_deg"}
+
+
+def test_heading_error_stays_defined_with_vertical_body_x_axis():
+    """EuRoC-like mounting: the body x axis points (nearly) up. A 3 deg error about the
+    navigation vertical gives AHE = 3 deg; a 2 deg *tilt* error gives AHE = 0 while the Euler-yaw
+    difference (AYE) is degenerate there and reports far more than the whole 2 deg error."""
+    n = 400
+    rng = np.random.default_rng(3)
+    # body x up (pitch -90 deg) with small wobble of the tilt and a slowly turning heading
+    heading = np.linspace(0.0, 120.0, n)
+    wobble = rng.normal(0.0, 1.0, (n, 2)).cumsum(0) * 0.05
+    gt = Rotation.from_euler("ZYX", np.stack([heading, -90.0 + wobble[:, 0], wobble[:, 1]], 1), degrees=True)
+    est = z_rot(3.0) * gt  # 3 deg about the navigation vertical
+    q_gt, q_est = rot_to_wxyz(gt), rot_to_wxyz(est)
+    assert metrics.ahe(q_gt, q_est, align=False) == pytest.approx(3.0, abs=1e-6)
+    assert metrics.aae(q_gt, q_est, align=False) == pytest.approx(3.0, abs=1e-6)
+    # aligned at the first sample, a constant offset is removed entirely
+    assert metrics.ahe(q_gt, q_est) == pytest.approx(0.0, abs=1e-6)
+    q_tilt = rot_to_wxyz(Rotation.from_euler("x", 2.0, degrees=True) * gt)  # tilt error, nav frame
+    assert metrics.ahe(q_gt, q_tilt, align=False) == pytest.approx(0.0, abs=1e-6)
+    assert metrics.aae(q_gt, q_tilt, align=False) == pytest.approx(2.0, abs=1e-6)
+    assert metrics.aye(q_gt, q_tilt, align=False) > 10.0

@@ -221,3 +221,30 @@ def test_split_recording_edges(generic_root):
     assert len(tr) == 1000 and va is None               # nothing left to validate on
     tr, va = split_recording(s, {"fraction": 0.25})
     assert len(tr) == 250 and len(va) == 750 and va.meta["part_start_s"] == pytest.approx(2.5)
+
+
+# ------------------------------------------------------------------ leave-recordings-out folds
+def test_fold_holds_out_whole_recordings(generic_root):
+    c = cfg(generic_root, folds=[["a"], ["sub/b"]], fold=0)
+    train, val = load_split(c, "train"), load_split(c, "val")
+    assert [s.name for s in val] == ["a"] and [s.name for s in train] == ["sub/b"]
+    assert len(val[0]) == 10000 and len(train[0]) == 5000  # whole recordings, not parts
+    c1 = cfg(generic_root, folds=[["a"], ["sub/b"]], fold=1)
+    assert [s.name for s in load_split(c1, "val")] == ["sub/b"]
+    assert [s.name for s in load_split(c1, "train")] == ["a"]
+    # test and trainval do not depend on the fold
+    assert [s.name for s in load_split(c1, "test")] == ["c"]
+    assert sorted(s.name for s in load_split(c1, "trainval")) == ["a", "sub/b"]
+
+
+def test_bad_fold_index_is_a_clear_error(generic_root):
+    with pytest.raises(DataError, match="fold"):
+        load_split(cfg(generic_root, folds=[["a"]], fold=3), "train")
+
+
+@pytest.mark.parametrize("name", ["broad", "euroc", "tumvi", "oxiod"])
+def test_shipped_folds_cover_training_recordings_once(name):
+    c = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "data" / f"{name}.yaml")
+    held = [r for f in c.folds for r in f]
+    assert sorted(held) == sorted(c.train), f"{name}: every training recording in exactly one fold"
+    assert not set(held) & set(c.test or [])

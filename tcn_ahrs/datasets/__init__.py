@@ -120,7 +120,9 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
     """The recordings of one split, as :class:`ImuSequence` objects (see the module docstring).
 
     split (default ``data_cfg.split``, else ``train``): ``train`` = the training parts of the
-    training recordings, ``val`` = their remaining parts, ``trainval`` = the full training
+    training recordings, ``val`` = their remaining parts (with ``data.fold=i`` set:
+    leave-recordings-out, ``val`` = the whole recordings of ``data.folds[i]``, ``train`` = the
+    other training recordings, whole), ``trainval`` = the full training
     recordings, ``test`` = the test recordings present under root (absent ones are skipped with
     a warning naming them), ``all`` = every recording found under root, full length.
     ``axes: 6`` drops the magnetometer.
@@ -136,8 +138,25 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
     mod = loader(name)
     root = resolve_root(data_cfg)
     available = mod.list_recordings(root)
+    fold = _get(data_cfg, "fold")
+    held_out: List[str] = []
+    if fold is not None:
+        folds = list(_plain(_get(data_cfg, "folds", [])) or [])
+        if not (0 <= int(fold) < len(folds)):
+            raise DataError("data config", "fold", f"expected an index into data.folds (0..{len(folds) - 1}), "
+                                                   f"got {fold!r}")
+        held_out = [str(r) for r in folds[int(fold)]]
     if split == "all":
         names = available
+    elif fold is not None and split in ("train", "val"):
+        # leave-recordings-out: the fold's recordings validate, whole; the others train, whole
+        train_names = [str(r) for r in (_plain(_get(data_cfg, "train", [])) or [])]
+        names = held_out if split == "val" else [r for r in train_names if r not in held_out]
+        missing = [r for r in names if r not in available]
+        if missing:
+            warnings.warn(f"{name}: fold {fold} recordings absent under {root}, skipped: {', '.join(missing)}",
+                          stacklevel=2)
+        names = [r for r in names if r in available]
     else:
         key = "test" if split == "test" else "train"
         names = list(_plain(_get(data_cfg, key, [])) or [])
@@ -150,7 +169,7 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
     for rec in names:
         seq = mod.load_recording(root, rec)
         seq.meta.setdefault("recording", rec)
-        if split in ("train", "val"):
+        if split in ("train", "val") and fold is None:
             train, val = split_recording(seq, _get(data_cfg, "train_part", {}))
             seq = train if split == "train" else val
             if seq is None:

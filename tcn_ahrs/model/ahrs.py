@@ -29,13 +29,17 @@ from torch import Tensor, nn
 
 from .. import so3
 from .calibration import Calibration
+from .closed_loop import ClosedLoopFilter, rest_detector
 from .ecf import OpenLoopECF
 
 # Every key a model config may have (a misspelt key is an error, see from_config).
 MODEL_KEYS = {
     "variant", "axes", "gyro_net", "acc_net", "mag_net", "gyro_input", "use_acc_term",
     "use_mag_term", "ecf", "preintegration", "init_gain", "error_scale", "tcn",
+    "loop", "trust", "closed_loop",
 }
+LOOPS = ("open", "closed")
+CLOSED_LOOP_KEYS = {"acc_gain", "mag_gain", "bias_gain", "rest_time_constant", "rest_time", "rest_gyro", "rest_acc"}
 TCN_KEYS = {"channels", "kernel_size", "dilations", "dropout"}
 
 
@@ -49,16 +53,32 @@ class LearnedAHRS(nn.Module):
                  acc_net: str = "tcn", mag_net: str = "tcn", gyro_input: str = "all",
                  use_acc_term: bool = True, use_mag_term: bool = True, ecf: bool = True,
                  preintegration: str = "two_pass", init_gain: float = 0.05,
-                 error_scale: Optional[Mapping[str, float]] = None, tcn: Optional[Mapping] = None):
+                 error_scale: Optional[Mapping[str, float]] = None, tcn: Optional[Mapping] = None,
+                 loop: str = "open", trust: Optional[bool] = None,
+                 closed_loop: Optional[Mapping[str, float]] = None):
         super().__init__()
+        if loop not in LOOPS:
+            raise ValueError(f"model config: loop {loop!r}: expected one of {LOOPS}")
         self.axes = int(axes)
         self.variant = str(variant)
+        self.loop = str(loop) if ecf else "open"
+        trust = (self.loop == "closed") if trust is None else bool(trust)
         self.calibration = Calibration(self.axes, gyro_net, acc_net, mag_net, gyro_input,
-                                       dict(error_scale or {}), dict(tcn or {}))
+                                       dict(error_scale or {}), dict(tcn or {}), trust=trust)
         self.ecf = None
-        if ecf:
+        self.closed = None
+        cl = dict(closed_loop or {})
+        bad = set(cl) - CLOSED_LOOP_KEYS
+        if bad:
+            raise ValueError(f"model.closed_loop config: unknown key(s) {sorted(bad)}; "
+                             f"expected a subset of {sorted(CLOSED_LOOP_KEYS)}")
+        self.rest_cfg = {k: float(cl.pop(k)) for k in ("rest_time", "rest_gyro", "rest_acc") if k in cl}
+        if ecf and self.loop == "open":
             self.ecf = OpenLoopECF(use_acc=use_acc_term, use_mag=use_mag_term and self.axes == 9,
                                    init_gain=init_gain, preintegration=preintegration)
+        elif ecf:
+            self.closed = ClosedLoopFilter(use_acc=use_acc_term, use_mag=use_mag_term and self.axes == 9,
+                                           **{k: float(v) for k, v in cl.items()})
 
     @classmethod
     def from_config(cls, cfg: Mapping[str, Any], axes: Optional[int] = None) -> "LearnedAHRS":
@@ -72,6 +92,8 @@ class LearnedAHRS(nn.Module):
         bad = set(tcn) - TCN_KEYS
         if bad:
             raise ValueError(f"model.tcn config: unknown key(s) {sorted(bad)}; expected a subset of {sorted(TCN_KEYS)}")
+        if cfg.get("closed_loop") is not None:
+            cfg["closed_loop"] = dict(cfg["closed_loop"])
         for k in ("channels", "dilations"):
             if k in tcn:
                 tcn[k] = list(tcn[k])
@@ -102,6 +124,10 @@ class LearnedAHRS(nn.Module):
         Returns dict (B, N, 3): ``omega`` ω̂ (Eq. 22), ``gyro`` ω̂_gyr, ``gyro_error`` ω̃,
         ``acc_error`` ã, ``mag_error`` m̃ (9-axis), ``e_acc``/``e_mag`` when used.
         """
+        if self.closed is not None:
+            out = self._run_closed(imu, dt, r0, 0)
+            out.pop("rot")
+            return out
         cal = self.calibration(imu)
         out = dict(cal)
         if self.ecf is None:
@@ -116,6 +142,37 @@ class LearnedAHRS(nn.Module):
             out["e_mag"] = e_mag
         return out
 
+    def filter_closed_loop(self, imu: Tensor, dt: Tensor, rot0: Tensor, bias0: Optional[Tensor] = None,
+                           east_ref: Optional[Tensor] = None, context: int = 0,
+                           dtype: Optional[torch.dtype] = None) -> Dict[str, Tensor]:
+        """The closed loop (:mod:`tcn_ahrs.model.closed_loop`) over imu (B, N, C), dt (B, N).
+
+        The calibration networks and the rest detector see every sample; the filter starts at
+        sample ``context`` from rot0 (B, 3, 3) (``nav_from_body``) and bias0 (B, 3) (default 0), so
+        the first ``context`` samples only warm the causal networks up (training chunks).
+        ``dtype``: of the filter loop (default imu's; float64 for long recordings).
+        Returns the calibration dict plus ``rot`` (B, N - context, 3, 3), ``gyro_bias``,
+        ``correction`` (B, N - context, 3) and ``east_ref`` (B, 3)."""
+        if self.closed is None:
+            raise RuntimeError("filter_closed_loop: this model has no closed loop (model.loop=open)")
+        cal = self.calibration(imu)
+        rest = rest_detector(imu[..., 0:3], imu[..., 3:6], dt, **self.rest_cfg)
+        dtype = imu.dtype if dtype is None else dtype
+        sl = slice(int(context), None)
+        f = lambda x: x[:, sl].to(dtype)  # noqa: E731
+        acc_trust = 2.0 * torch.sigmoid(cal["acc_trust_logit"])
+        mag_trust = 2.0 * torch.sigmoid(cal["mag_trust_logit"]) if "mag_trust_logit" in cal else torch.ones_like(acc_trust)
+        if bias0 is None:
+            bias0 = rot0.new_zeros(rot0.shape[:-2] + (3,))
+        out = self.closed(f(cal["gyro"]), f(cal["acc"]), f(cal["mag"]) if "mag" in cal else None,
+                          f(imu[..., 3:6]), f(acc_trust), f(mag_trust), f(rest), f(dt),
+                          rot0.to(dtype), bias0.to(dtype), None if east_ref is None else east_ref.to(dtype))
+        cal.update(out)
+        cal["rest"] = rest
+        cal["acc_trust"] = acc_trust
+        cal["mag_trust"] = mag_trust
+        return cal
+
     def run_sequence(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int = 0,
                      reanchor: Optional[int] = None) -> Dict[str, Tensor]:
         """A whole recording: the (causal) calibration sees every sample; the ECF and the
@@ -129,7 +186,13 @@ class LearnedAHRS(nn.Module):
 
         imu (1, N, C), dt (1, N), r0 (1, 3, 3). Returns the :meth:`forward` dict (entries before
         ``start``: raw-calibrated values, zero innovations) plus ``rot`` (1, N, 3, 3) in float64
-        (samples before ``start`` hold r0)."""
+        (samples before ``start`` hold r0).
+
+        With the closed loop (``model.loop=closed``) the filter runs sample by sample in float64
+        from ``r0`` at ``start``; ``reanchor`` does not apply (the loop never drifts from its
+        own estimate). ``omega`` is then the applied rate ω̂_gyr − b + w."""
+        if self.closed is not None:
+            return self._run_closed(imu, dt, r0, start)
         cal = self.calibration(imu)
         out = dict(cal)
         omega = cal["gyro"].clone()
@@ -163,6 +226,17 @@ class LearnedAHRS(nn.Module):
         out.update(innov)
         out["omega"] = omega
         out["rot"] = torch.cat(rot_parts, 1)[:, :n]
+        return out
+
+    def _run_closed(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int) -> Dict[str, Tensor]:
+        n = imu.shape[1]
+        out = self.filter_closed_loop(imu, dt, r0.to(torch.float64), context=start, dtype=torch.float64)
+        rot = out.pop("rot")
+        rot = torch.cat([r0.to(torch.float64).unsqueeze(1).expand(-1, start, 3, 3), rot], 1)
+        omega = out["gyro"].to(torch.float64).clone()
+        omega[:, start:] = omega[:, start:] - out["gyro_bias"] + out["correction"]
+        out["omega"] = omega.to(imu.dtype)
+        out["rot"] = rot[:, :n]
         return out
 
     @staticmethod

@@ -18,7 +18,7 @@ m/s^2, uT. Shapes: imu (B, N, C) with C = 6 (gyro, acc) or 9 (gyro, acc, mag).
 """
 from __future__ import annotations
 
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -44,11 +44,11 @@ class SensorMatrix(nn.Module):
         return y @ self.matrix.transpose(0, 1)
 
 
-def _error_net(kind: str, in_channels: int, tcn_kwargs: dict) -> Optional[nn.Module]:
+def _error_net(kind: str, in_channels: int, tcn_kwargs: dict, extra: int = 0) -> Optional[nn.Module]:
     if kind == "tcn":
-        return TCN(in_channels, 3, **tcn_kwargs)
+        return TCN(in_channels, 3 + extra, **tcn_kwargs)
     if kind == "constant":
-        return ConstantError(3)
+        return ConstantError(3 + extra)
     if kind == "none":
         return None
     raise ValueError(f"error network kind {kind!r}: expected one of {NET_KINDS}")
@@ -69,7 +69,8 @@ class Calibration(nn.Module):
 
     def __init__(self, axes: int = 9, gyro_net: str = "tcn", acc_net: str = "tcn",
                  mag_net: str = "tcn", gyro_input: str = "all",
-                 error_scale: Optional[Dict[str, float]] = None, tcn: Optional[dict] = None):
+                 error_scale: Optional[Dict[str, float]] = None, tcn: Optional[dict] = None,
+                 trust: bool = False):
         super().__init__()
         if axes not in (6, 9):
             raise ValueError(f"axes: expected 6 or 9, got {axes!r}")
@@ -86,9 +87,15 @@ class Calibration(nn.Module):
         self.gyro_matrix = SensorMatrix()
         self.acc_matrix = SensorMatrix()
         self.mag_matrix = SensorMatrix() if axes == 9 else None
+        # trust: the accelerometer and magnetometer networks output a fourth channel, the logit of
+        # the closed-loop filter's per-sample trust in that sensor; the magnetometer network then
+        # also sees the accelerometer (a disturbed field shows in its norm *and* its dip angle).
+        self.trust = bool(trust)
+        extra = 1 if self.trust else 0
         self.gyro_error_net = _error_net(gyro_net, axes if gyro_input == "all" else 3, tcn_kwargs)
-        self.acc_error_net = _error_net(acc_net, 3, tcn_kwargs)
-        self.mag_error_net = _error_net(mag_net, 3, tcn_kwargs) if axes == 9 else None
+        self.acc_error_net = _error_net(acc_net, 3, tcn_kwargs, extra)
+        self.mag_error_net = (_error_net(mag_net, 6 if self.trust else 3, tcn_kwargs, extra)
+                              if axes == 9 else None)
 
     @torch.no_grad()
     def set_input_stats(self, mean: Tensor, std: Tensor) -> None:
@@ -111,11 +118,21 @@ class Calibration(nn.Module):
             return x.new_zeros(x.shape[:-1] + (3,))
         return scale * net(x)
 
+    def _error_and_trust(self, net: Optional[nn.Module], x: Tensor, scale: float) -> Tuple[Tensor, Tensor]:
+        """(error (B, N, 3), trust logit (B, N)); the logit is 0 without trust or network."""
+        if net is None:
+            return x.new_zeros(x.shape[:-1] + (3,)), x.new_zeros(x.shape[:-1])
+        y = net(x)
+        if self.trust:
+            return scale * y[..., 0:3], y[..., 3]
+        return scale * y, x.new_zeros(x.shape[:-1])
+
     def forward(self, imu: Tensor) -> Dict[str, Tensor]:
         """imu (B, N, C) raw readings -> dict of (B, N, 3):
 
-        ``gyro`` ω̂_gyr (Eq. 12), ``acc`` ĝ (Eq. 13), ``mag`` b̂ (Eq. 14, 9-axis only) and the
-        error terms ``gyro_error`` ω̃, ``acc_error`` ã, ``mag_error`` m̃.
+        ``gyro`` ω̂_gyr (Eq. 12), ``acc`` ĝ (Eq. 13), ``mag`` b̂ (Eq. 14, 9-axis only), the
+        error terms ``gyro_error`` ω̃, ``acc_error`` ã, ``mag_error`` m̃, and (B, N) trust logits
+        ``acc_trust_logit``, ``mag_trust_logit`` (zero unless ``trust``).
         """
         if imu.shape[-1] != self.axes:
             raise ValueError(f"Calibration: expected {self.axes} IMU channels, got {imu.shape[-1]}")
@@ -123,10 +140,13 @@ class Calibration(nn.Module):
         gyro_in = z if self.gyro_input == "all" else z[..., 0:3]
         out: Dict[str, Tensor] = {}
         out["gyro_error"] = self._error(self.gyro_error_net, gyro_in, self.error_scale["gyro"])
-        out["acc_error"] = self._error(self.acc_error_net, z[..., 3:6], self.error_scale["acc"])
+        out["acc_error"], out["acc_trust_logit"] = self._error_and_trust(self.acc_error_net, z[..., 3:6],
+                                                                         self.error_scale["acc"])
         out["gyro"] = self.gyro_matrix(imu[..., 0:3]) - out["gyro_error"]
         out["acc"] = self.acc_matrix(imu[..., 3:6]) - out["acc_error"]
         if self.axes == 9:
-            out["mag_error"] = self._error(self.mag_error_net, z[..., 6:9], self.error_scale["mag"])
+            mag_in = z[..., 3:9] if self.trust else z[..., 6:9]
+            out["mag_error"], out["mag_trust_logit"] = self._error_and_trust(self.mag_error_net, mag_in,
+                                                                             self.error_scale["mag"])
             out["mag"] = self.mag_matrix(imu[..., 6:9]) - out["mag_error"]
         return out

@@ -1,0 +1,119 @@
+"""Leave-recordings-out cross-validation (``scripts/crossval.py``).
+
+For each fold ``i`` of ``data.folds``: train with ``data.fold=i`` (the other training recordings,
+whole, train; fold ``i``'s recordings, whole, select the checkpoint), then score the selected
+checkpoint next to the baselines on fold ``i``'s recordings with the one comparison runner
+(:func:`tcn_ahrs.compare.compare`; baselines tuned, if asked, on the fold's training recordings
+only). Writes ``crossval.json`` and ``crossval.md`` (per fold and mean ± sample standard
+deviation over folds) under the output folder, one sub-folder per fold.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Dict, List
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+SUMMARY_KEYS = ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
+LABELS = {"aae_deg": "AAE", "aye_deg": "AYE", "ahe_deg": "AHE", "total_deg": "BROAD total",
+          "heading_deg": "BROAD heading", "inclination_deg": "inclination"}
+
+
+def _fold_cfg(cfg: DictConfig, i: int, run_dir: Path) -> DictConfig:
+    f = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+    with open_dict(f):
+        f.data.fold = int(i)
+        f.run_dir = str(run_dir)
+        f.eval.enabled = False
+        f.pop("crossval", None)
+        f.pop("hydra", None)
+    return f
+
+
+def summarize(folds: List[Dict[str, Any]]) -> Dict[str, Dict[str, Dict[str, float]]]:
+    """{method: {metric: {"mean", "std", "n"}}} over the folds' per-fold means."""
+    out: Dict[str, Dict[str, Dict[str, float]]] = {}
+    for f in folds:
+        for method, means in f["means"].items():
+            for k, v in means.items():
+                if v is None or not math.isfinite(v):
+                    continue
+                out.setdefault(method, {}).setdefault(k, {"values": []})["values"].append(float(v))
+    for method in out.values():
+        for k, d in method.items():
+            vals = np.asarray(d.pop("values"))
+            d.update(mean=float(vals.mean()), std=float(vals.std(ddof=1)) if len(vals) > 1 else 0.0, n=int(len(vals)))
+    return out
+
+
+def markdown(result: Dict[str, Any]) -> str:
+    keys = [k for k in SUMMARY_KEYS if any(k in m for m in result["summary"].values())]
+    lines = [f"# Cross-validation: {result['dataset']} ({len(result['folds'])} folds, leave-recordings-out)\n",
+             "Each fold: trained on the other training recordings, checkpoint selected on the fold's "
+             "recordings (whole), scored on them. Degrees; mean ± sample std over folds.\n",
+             "| method | " + " | ".join(LABELS[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
+    for method, m in result["summary"].items():
+        cells = [f"{m[k]['mean']:.2f} ± {m[k]['std']:.2f}" if k in m else "—" for k in keys]
+        lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    for f in result["folds"]:
+        lines += [f"\n## Fold {f['fold']}: {', '.join(f['recordings'])}\n",
+                  "| method | " + " | ".join(LABELS[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
+        for method, means in f["means"].items():
+            cells = ["—" if means.get(k) is None else f"{means[k]:.2f}" for k in keys]
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
+    from .compare import PEER_METHODS, compare
+    from .datasets import load_split
+    from .train import train_main
+
+    cv = cfg.crossval
+    folds = list(OmegaConf.to_container(cfg.data.get("folds"), resolve=True) or []) if cfg.data.get("folds") else []
+    if not folds:
+        raise ValueError(f"crossval: data '{cfg.data.name}' defines no data.folds (lists of training "
+                         "recordings to hold out); add them to its conf/data/*.yaml")
+    idx = list(cv.folds) if cv.get("folds") is not None else list(range(len(folds)))
+    out = Path(str(cv.get("out") or f"runs/crossval/{cfg.data.name}"))
+    out.mkdir(parents=True, exist_ok=True)
+    methods = list(cv.get("methods") or [])
+    if cv.get("peers"):
+        methods += [m for m in PEER_METHODS if m not in methods]
+    label = str(cv.get("label") or "Learned")
+    fold_results = []
+    for i in idx:
+        run_dir = out / f"fold{i}"
+        fcfg = _fold_cfg(cfg, i, run_dir)
+        done = run_dir / "TRAINED"
+        best = run_dir / "checkpoints" / "best.ckpt"
+        if cv.get("retrain") or not (done.is_file() and best.is_file()):
+            with open_dict(fcfg):
+                fcfg.resume = (run_dir / "checkpoints" / "last.ckpt").is_file() and not cv.get("retrain")
+            print(f"== fold {i}: training on {fcfg.data.name} without {folds[i]} (run dir {run_dir})")
+            res = train_main(fcfg)
+            best = Path(res["best"])
+            done.write_text(str(best) + "\n")
+        else:
+            best = Path(done.read_text().strip())
+            print(f"== fold {i}: reusing {best}")
+        eval_seqs = [s for s in load_split(fcfg.data, "val") if s.has_gt]
+        tune_seqs = load_split(fcfg.data, "train") if cv.get("tune") else []
+        res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=int(cfg.data.get("axes", 9)),
+                      both_axes=False, tune=bool(cv.get("tune")), ckpts={label: str(best)},
+                      out_dir=run_dir / "eval", dataset=str(cfg.data.name),
+                      tune_max_seconds_per_recording=cv.get("tune_max_seconds_per_recording"), progress=True)
+        means = {m: {k: v.get("mean", {}).get(k) for k in SUMMARY_KEYS} for m, v in res["methods"].items()}
+        fold_results.append({"fold": int(i), "recordings": [s.name for s in eval_seqs], "checkpoint": str(best),
+                             "means": means})
+    result = {"dataset": str(cfg.data.name), "folds": fold_results, "summary": summarize(fold_results),
+              "config": OmegaConf.to_container(cfg, resolve=True)}
+    (out / "crossval.json").write_text(json.dumps(result, indent=1, default=str))
+    md = markdown(result)
+    (out / "crossval.md").write_text(md)
+    print(md)
+    print(f"results in {out}")
+    return result
