@@ -107,6 +107,13 @@ def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") 
     if state is None:
         raise CheckpointError(f"{path}: no 'state_dict' in checkpoint")
     state = {k[len("model."):]: v for k, v in state.items() if k.startswith("model.")} or dict(state)
+    if model.closed is not None and "closed.rest_window" not in state:
+        # written before the rest window was stored: it was the median step of the data, i.e. the
+        # training rate recorded with the checkpoint (0: keep deriving it from the data)
+        rate = (meta.get("layout") or {}).get("rate_hz") or meta.get("rate_hz")
+        if rate:
+            model.closed.set_rate(float(rate))
+        state["closed.rest_window"] = model.closed.rest_window.clone()
     try:
         model.load_state_dict(state)
     except RuntimeError as e:

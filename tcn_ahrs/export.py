@@ -684,6 +684,171 @@ class StreamingAHRS(BatchAHRS):
 
 
 # ======================================================================= export API
+# ============================================================ closed loop (default model)
+class ClosedLoopBatch(nn.Module):
+    """The learned closed loop, whole sequence: the model's own :class:`Calibration` and
+    :class:`ClosedLoopFilter` modules scripted as they are (no restated math), run exactly as
+    :meth:`LearnedAHRS.run_sequence` runs them in evaluation: networks in float32, rest
+    detection, trust and the loop (:func:`tcn_ahrs.model.closed_loop.closed_loop_scan`) in float64.
+
+    ``forward(imu (N, C), dt float | (N,), q0 (4,)) -> (quat (N, 4), omega (N, 3))``, float64;
+    ``omega`` = the rate the loop applied, ω̂_gyr − b + w.
+    """
+
+    metadata_json: str
+
+    def __init__(self, model: nn.Module, metadata: Mapping[str, Any]):
+        super().__init__()
+        import copy
+
+        if model.closed is None:
+            raise ExportError("ClosedLoopBatch: the model has no closed loop (model.loop=open)")
+        self.axes = int(model.axes)
+        self.calibration = copy.deepcopy(model.calibration).float().eval()
+        self.closed = copy.deepcopy(model.closed).double().eval()
+        if int(self.closed.rest_window) <= 0:
+            rate = metadata.get("rate_hz")
+            if not rate:
+                raise ExportError("closed-loop export: the rest window is unset and no rate_hz is known "
+                                  "(pass rate=HZ)")
+            self.closed.set_rate(float(rate))
+        self.metadata_json = json.dumps(dict(metadata), sort_keys=True)
+
+    @torch.jit.export
+    def metadata(self) -> str:
+        return self.metadata_json
+
+    def _check_imu(self, imu: Tensor):
+        if imu.dim() != 2 or imu.size(1) != self.axes:
+            raise ValueError("imu: expected shape (N, " + str(self.axes) + ") [gyro rad/s, acc m/s^2"
+                             + (", mag uT" if self.axes == 9 else "") + "], got " + str(list(imu.shape)))
+        if imu.size(0) < 1:
+            raise ValueError("imu: expected at least one sample")
+
+    def _q0(self, q0: Tensor) -> Tensor:
+        if q0.numel() != 4:
+            raise ValueError("q0: expected 4 values (w, x, y, z), got shape " + str(list(q0.shape)))
+        q = q0.reshape(4).to(torch.float64)
+        n = float(torch.linalg.norm(q))
+        if not (n > 0.0 and math.isfinite(n)):
+            raise ValueError("q0: expected a non-zero finite quaternion (w, x, y, z)")
+        return q / n
+
+    def _dt(self, dt: Union[float, Tensor], n: int) -> Tensor:
+        if isinstance(dt, Tensor):
+            d = dt.to(torch.float32)
+            if d.dim() == 0:
+                return d.expand(n)
+            if d.dim() != 1 or d.size(0) != n:
+                raise ValueError("dt: expected a float or shape (" + str(n) + ",), got " + str(list(d.shape)))
+            return d
+        return torch.full([n], float(dt), dtype=torch.float32)
+
+    def _run(self, x: Tensor, d: Tensor, rot: Tensor, bias: Tensor, east_ref: Optional[Tensor]) -> Dict[str, Tensor]:
+        """x (1, N, C) float32, d (1, N) float32 -> the loop's dict (LearnedAHRS.filter_closed_loop)."""
+        return self.closed.run(self.calibration(x), x, d, rot, bias, east_ref, 0, torch.float64)
+
+    @staticmethod
+    def _omega(out: Dict[str, Tensor]) -> Tensor:
+        return out["gyro"][0].to(torch.float64) - out["gyro_bias"][0] + out["correction"][0]
+
+    @staticmethod
+    def _quat(rot: Tensor) -> Tensor:
+        return so3.matrix_to_quat(rot)
+
+    def forward(self, imu: Tensor, dt: Union[float, Tensor], q0: Tensor) -> Tuple[Tensor, Tensor]:
+        self._check_imu(imu)
+        n = imu.size(0)
+        d = self._dt(dt, n)
+        rot0 = so3.quat_to_matrix(self._q0(q0)).unsqueeze(0)
+        out = self._run(imu.to(torch.float32).unsqueeze(0), d.unsqueeze(0), rot0,
+                        torch.zeros(1, 3, dtype=torch.float64), None)
+        return self._quat(out["rot"][0]), self._omega(out)
+
+
+class ClosedLoopStreaming(ClosedLoopBatch):
+    """The closed loop one sample per call: ``reset(q0)``; ``step(sample (C,), dt)`` ->
+    ``(quat (4,), omega (3,))``; ``run(imu, dt, q0)`` = reset + steps.
+
+    State: the last ``L = max(receptive field, 2 · rest window − 1)`` raw samples (what the
+    causal networks and the rest detector at the newest sample depend on), the attitude, the
+    bias state and the heading reference. Each step runs the same calibration and the same loop
+    code as the batch module, on that history (the calibration over all L samples: correct, but
+    ~L times the per-sample work of a ring-buffer network — the speed issue's to fuse).
+    """
+
+    def __init__(self, model: nn.Module, metadata: Mapping[str, Any]):
+        super().__init__(model, metadata)
+        w = int(self.closed.rest_window)
+        self.history = int(max(int(model.receptive_field), 2 * w - 1))
+        self.register_buffer("buf", torch.zeros(self.history, self.axes, dtype=torch.float32))
+        self.register_buffer("buf_dt", torch.zeros(self.history, dtype=torch.float32))
+        self.register_buffer("rot", torch.eye(3, dtype=torch.float64).unsqueeze(0))
+        self.register_buffer("bias", torch.zeros(1, 3, dtype=torch.float64))
+        self.register_buffer("east_ref", torch.zeros(1, 3, dtype=torch.float64))
+        self.count = 0
+
+    @torch.jit.export
+    def reset(self, q0: Tensor) -> None:
+        self.rot = so3.quat_to_matrix(self._q0(q0)).unsqueeze(0)
+        self.bias = torch.zeros(1, 3, dtype=torch.float64)
+        self.east_ref = torch.zeros(1, 3, dtype=torch.float64)
+        self.buf = torch.zeros(self.history, self.axes, dtype=torch.float32)
+        self.buf_dt = torch.zeros(self.history, dtype=torch.float32)
+        self.count = 0
+
+    @torch.jit.export
+    def step(self, sample: Tensor, dt: float) -> Tuple[Tensor, Tensor]:
+        if sample.numel() != self.axes:
+            raise ValueError("sample: expected " + str(self.axes) + " values, got " + str(sample.numel()))
+        self.buf = torch.cat([self.buf[1:], sample.reshape(1, self.axes).to(torch.float32)], 0)
+        self.buf_dt = torch.cat([self.buf_dt[1:], torch.full([1], dt, dtype=torch.float32)], 0)
+        self.count += 1
+        m = min(self.count, self.history)  # fewer than `history` samples: all of them, as batch
+        x = self.buf[self.history - m:].unsqueeze(0)
+        d = self.buf_dt[self.history - m:].unsqueeze(0)
+        if self.count == 1:
+            out = self._run(x, d, self.rot, self.bias, None)  # the initial state; sets east_ref
+            self.east_ref = out["east_ref"]
+            return self._quat(self.rot[0]), self._omega(out)[0]
+        cal = self.calibration(x)
+        # the newest sample as the second of a two-sample window whose first entry is the state
+        two: Dict[str, Tensor] = {}
+        for k, v in cal.items():
+            two[k] = v[:, -2:]
+        out = self.closed.run(two, x[:, -2:], d[:, -2:], self.rot, self.bias, self.east_ref, 0, torch.float64)
+        # the rest flag needs the whole history: recompute it there and redo the step with it
+        rest = self.closed.rest(x[..., 0:3], x[..., 3:6], d)[:, -2:].to(torch.float64)
+        mag: Optional[Tensor] = None
+        if "mag" in two:
+            mag = two["mag"].to(torch.float64)
+        res = self.closed.forward(two["gyro"].to(torch.float64), two["acc"].to(torch.float64), mag,
+                                  x[:, -2:, 3:6].to(torch.float64), out["acc_trust"].to(torch.float64),
+                                  out["mag_trust"].to(torch.float64), rest, d[:, -2:].to(torch.float64),
+                                  self.rot, self.bias, self.east_ref)
+        self.rot = res["rot"][:, 1]
+        self.bias = res["gyro_bias"][:, 1]
+        omega = two["gyro"][0, 1].to(torch.float64) - res["gyro_bias"][0, 1] + res["correction"][0, 1]
+        return self._quat(self.rot[0]), omega
+
+    def forward(self, sample: Tensor, dt: float) -> Tuple[Tensor, Tensor]:  # type: ignore[override]
+        return self.step(sample, dt)
+
+    @torch.jit.export
+    def run(self, imu: Tensor, dt: Union[float, Tensor], q0: Tensor) -> Tuple[Tensor, Tensor]:
+        self._check_imu(imu)
+        n = imu.size(0)
+        d = self._dt(dt, n)
+        self.reset(q0)
+        qs: List[Tensor] = []
+        ws: List[Tensor] = []
+        for k in range(n):
+            q, w = self.step(imu[k], float(d[k]))
+            qs.append(q)
+            ws.append(w)
+        return torch.stack(qs, 0), torch.stack(ws, 0)
+
+
 def file_sha256(path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as fh:
@@ -710,6 +875,7 @@ def build_metadata(model: nn.Module, mode: str, meta: Optional[Mapping[str, Any]
         "receptive_field": int(model.receptive_field),
         "preintegration": ecf.preintegration if ecf is not None else "none",
         "ecf": ecf is not None,
+        "loop": str(getattr(model, "loop", "open")),
         "units": {"gyro": "rad/s", "acc": "m/s^2 (specific force, +9.81 along the up axis at rest)",
                   "mag": "uT", "dt": "s", "omega": "rad/s"},
         "frames": {"imu": "body (sensor) frame", "attitude": "nav_from_body", "navigation": "ENU"},
@@ -747,7 +913,13 @@ def _script(module: nn.Module, freeze: bool = True):
 def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str):
     model = model.eval()
     md = build_metadata(model, mode, meta, net_dtype)
-    module = cls(fuse_model(model), md, net_dtype).eval()
+    if getattr(model, "closed", None) is not None:
+        if net_dtype != torch.float32:
+            raise ExportError("the closed-loop export runs its networks in float32 (net_dtype=float32)")
+        cls = ClosedLoopStreaming if mode == "streaming" else ClosedLoopBatch
+        module = cls(model, md).eval()
+    else:
+        module = cls(fuse_model(model), md, net_dtype).eval()
     scripted = _script(module)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -295,6 +295,8 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
                         rate_hz=float(np.median([s.rate for s in dm.train_seqs])))
     mean, std = dm.statistics()
     module.model.calibration.set_input_stats(mean, std)
+    if module.model.closed is not None:
+        module.model.closed.set_rate(module.hparams.rate_hz)
     monitor = str(cfg.train.monitor) if dm.val_store is not None else "train/loss_epoch"
 
     ckpt_path = cfg.get("ckpt_path")

@@ -46,14 +46,14 @@ def test_rest_detector_is_causal_and_fires_only_at_rest():
     gyro = torch.full((1, n, 3), 0.01, dtype=torch.float64) + 1e-4 * imu[..., 0:3]
     acc = torch.tensor([0.0, 0.0, G], dtype=torch.float64).expand(1, n, 3).clone()
     gyro[:, 300:] += torch.linspace(0, 3, n - 300, dtype=torch.float64)[None, :, None]  # starts moving at 3 s
-    rest = rest_detector(gyro, acc, dt, rest_time=1.0)
+    rest = rest_detector(gyro, acc, 100)
     assert rest[0, :99].sum() == 0  # not watched long enough yet
     assert rest[0, 100:300].min() == 1  # a constant bias is rest: deviation from the mean counts
     assert rest[0, 320:].max() == 0
     # causal: changing the future leaves the past alone
     gyro2 = gyro.clone()
     gyro2[:, 200:] += 1.0
-    rest2 = rest_detector(gyro2, acc, dt, rest_time=1.0)
+    rest2 = rest_detector(gyro2, acc, 100)
     assert torch.equal(rest2[0, :200], rest[0, :200])
 
 

@@ -29,7 +29,7 @@ from torch import Tensor, nn
 
 from .. import so3
 from .calibration import Calibration
-from .closed_loop import ClosedLoopFilter, rest_detector
+from .closed_loop import ClosedLoopFilter
 from .ecf import OpenLoopECF
 
 # Every key a model config may have (a misspelt key is an error, see from_config).
@@ -72,7 +72,6 @@ class LearnedAHRS(nn.Module):
         if bad:
             raise ValueError(f"model.closed_loop config: unknown key(s) {sorted(bad)}; "
                              f"expected a subset of {sorted(CLOSED_LOOP_KEYS)}")
-        self.rest_cfg = {k: float(cl.pop(k)) for k in ("rest_time", "rest_gyro", "rest_acc") if k in cl}
         if ecf and self.loop == "open":
             self.ecf = OpenLoopECF(use_acc=use_acc_term, use_mag=use_mag_term and self.axes == 9,
                                    init_gain=init_gain, preintegration=preintegration)
@@ -155,23 +154,10 @@ class LearnedAHRS(nn.Module):
         ``correction`` (B, N - context, 3) and ``east_ref`` (B, 3)."""
         if self.closed is None:
             raise RuntimeError("filter_closed_loop: this model has no closed loop (model.loop=open)")
-        cal = self.calibration(imu)
-        rest = rest_detector(imu[..., 0:3], imu[..., 3:6], dt, **self.rest_cfg)
-        dtype = imu.dtype if dtype is None else dtype
-        sl = slice(int(context), None)
-        f = lambda x: x[:, sl].to(dtype)  # noqa: E731
-        acc_trust = 2.0 * torch.sigmoid(cal["acc_trust_logit"])
-        mag_trust = 2.0 * torch.sigmoid(cal["mag_trust_logit"]) if "mag_trust_logit" in cal else torch.ones_like(acc_trust)
         if bias0 is None:
             bias0 = rot0.new_zeros(rot0.shape[:-2] + (3,))
-        out = self.closed(f(cal["gyro"]), f(cal["acc"]), f(cal["mag"]) if "mag" in cal else None,
-                          f(imu[..., 3:6]), f(acc_trust), f(mag_trust), f(rest), f(dt),
-                          rot0.to(dtype), bias0.to(dtype), None if east_ref is None else east_ref.to(dtype))
-        cal.update(out)
-        cal["rest"] = rest
-        cal["acc_trust"] = acc_trust
-        cal["mag_trust"] = mag_trust
-        return cal
+        return self.closed.run(self.calibration(imu), imu, dt, rot0, bias0, east_ref, int(context),
+                               imu.dtype if dtype is None else dtype)
 
     def run_sequence(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int = 0,
                      reanchor: Optional[int] = None) -> Dict[str, Tensor]:

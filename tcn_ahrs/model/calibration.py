@@ -18,7 +18,7 @@ m/s^2, uT. Shapes: imu (B, N, C) with C = 6 (gyro, acc) or 9 (gyro, acc, mag).
 """
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple
+from typing import Dict, Optional
 
 import torch
 from torch import Tensor, nn
@@ -55,6 +55,8 @@ def _error_net(kind: str, in_channels: int, tcn_kwargs: dict, extra: int = 0) ->
 
 
 class Calibration(nn.Module):
+    __jit_unused_properties__ = ["receptive_field"]
+
     """Calibration of the raw IMU readings (Eqs. 12-14) with learned error terms.
 
     Args:
@@ -112,21 +114,6 @@ class Calibration(nn.Module):
         nets = [n for n in (self.gyro_error_net, self.acc_error_net, self.mag_error_net) if n is not None]
         return max([int(n.receptive_field) for n in nets] + [1])
 
-    @staticmethod
-    def _error(net: Optional[nn.Module], x: Tensor, scale: float) -> Tensor:
-        if net is None:
-            return x.new_zeros(x.shape[:-1] + (3,))
-        return scale * net(x)
-
-    def _error_and_trust(self, net: Optional[nn.Module], x: Tensor, scale: float) -> Tuple[Tensor, Tensor]:
-        """(error (B, N, 3), trust logit (B, N)); the logit is 0 without trust or network."""
-        if net is None:
-            return x.new_zeros(x.shape[:-1] + (3,)), x.new_zeros(x.shape[:-1])
-        y = net(x)
-        if self.trust:
-            return scale * y[..., 0:3], y[..., 3]
-        return scale * y, x.new_zeros(x.shape[:-1])
-
     def forward(self, imu: Tensor) -> Dict[str, Tensor]:
         """imu (B, N, C) raw readings -> dict of (B, N, 3):
 
@@ -135,18 +122,36 @@ class Calibration(nn.Module):
         ``acc_trust_logit``, ``mag_trust_logit`` (zero unless ``trust``).
         """
         if imu.shape[-1] != self.axes:
-            raise ValueError(f"Calibration: expected {self.axes} IMU channels, got {imu.shape[-1]}")
+            raise ValueError("Calibration: expected " + str(self.axes) + " IMU channels, got " + str(imu.shape[-1]))
+        # written out per network (no helper taking a module): this forward is scripted as is
+        # by the TorchScript export
         z = (imu - self.input_mean) / self.input_std
-        gyro_in = z if self.gyro_input == "all" else z[..., 0:3]
+        zero3 = torch.zeros_like(imu[..., 0:3])
+        zero1 = torch.zeros_like(imu[..., 0])
         out: Dict[str, Tensor] = {}
-        out["gyro_error"] = self._error(self.gyro_error_net, gyro_in, self.error_scale["gyro"])
-        out["acc_error"], out["acc_trust_logit"] = self._error_and_trust(self.acc_error_net, z[..., 3:6],
-                                                                         self.error_scale["acc"])
-        out["gyro"] = self.gyro_matrix(imu[..., 0:3]) - out["gyro_error"]
-        out["acc"] = self.acc_matrix(imu[..., 3:6]) - out["acc_error"]
-        if self.axes == 9:
-            mag_in = z[..., 3:9] if self.trust else z[..., 6:9]
-            out["mag_error"], out["mag_trust_logit"] = self._error_and_trust(self.mag_error_net, mag_in,
-                                                                             self.error_scale["mag"])
-            out["mag"] = self.mag_matrix(imu[..., 6:9]) - out["mag_error"]
+        gyro_error = zero3
+        if self.gyro_error_net is not None:
+            gyro_error = self.error_scale["gyro"] * self.gyro_error_net(z if self.gyro_input == "all" else z[..., 0:3])
+        acc_error, acc_logit = zero3, zero1
+        if self.acc_error_net is not None:
+            y = self.acc_error_net(z[..., 3:6])
+            acc_error = self.error_scale["acc"] * y[..., 0:3]
+            if self.trust:
+                acc_logit = y[..., 3]
+        out["gyro_error"] = gyro_error
+        out["acc_error"] = acc_error
+        out["acc_trust_logit"] = acc_logit
+        out["gyro"] = self.gyro_matrix(imu[..., 0:3]) - gyro_error
+        out["acc"] = self.acc_matrix(imu[..., 3:6]) - acc_error
+        mag_matrix = self.mag_matrix
+        if mag_matrix is not None:
+            mag_error, mag_logit = zero3, zero1
+            if self.mag_error_net is not None:
+                y = self.mag_error_net(z[..., 3:9] if self.trust else z[..., 6:9])
+                mag_error = self.error_scale["mag"] * y[..., 0:3]
+                if self.trust:
+                    mag_logit = y[..., 3]
+            out["mag_error"] = mag_error
+            out["mag_trust_logit"] = mag_logit
+            out["mag"] = mag_matrix(imu[..., 6:9]) - mag_error
         return out

@@ -50,32 +50,33 @@ from .. import so3
 from .ecf import _unit
 
 
-def rest_detector(gyro: Tensor, acc: Tensor, dt: Tensor, rest_time: float = 1.5,
-                  rest_gyro: float = math.radians(2.0), rest_acc: float = 0.5) -> Tensor:
-    """Causal rest flag (B, N) in {0., 1.}: over the last ``rest_time`` seconds every gyro
-    sample stayed within ``rest_gyro`` rad/s and every accelerometer sample within ``rest_acc``
-    m/s² of the running mean of that window. gyro, acc (B, N, 3); dt (B, N) s (its median sets
-    the window length in samples)."""
+def rest_window(dt: Tensor, rest_time: float) -> int:
+    """Samples in ``rest_time`` seconds at the median step of dt (B, N)."""
+    step = float(dt[:, 1:].median()) if dt.shape[1] > 1 else 0.01
+    return max(2, int(round(rest_time / max(step, 1e-6))))
+
+
+def rest_detector(gyro: Tensor, acc: Tensor, window: int, rest_gyro: float = math.radians(2.0),
+                  rest_acc: float = 0.5) -> Tensor:
+    """Causal rest flag (B, N) in {0., 1.}: over the last ``window`` samples every gyro sample
+    stayed within ``rest_gyro`` rad/s and every accelerometer sample within ``rest_acc`` m/s² of
+    the running mean (over ``window`` samples, fewer at the start) — VQF's test of steadiness,
+    so a constant gyro bias still counts as rest. gyro, acc (B, N, 3). The first ``window - 1``
+    samples are never rest (not watched long enough). The flag at sample k depends on samples
+    k - 2 window + 2 .. k only (what the streaming export keeps)."""
     n = gyro.shape[1]
-    step = float(dt[:, 1:].median()) if n > 1 else 0.01
-    w = max(2, int(round(rest_time / max(step, 1e-6))))
-    w = min(w, max(n, 2))
+    w = int(window)
+    idx = torch.arange(1, n + 1, device=gyro.device)
+    lo = (idx - w).clamp_min(0)
+    cnt = (idx - lo).to(gyro.dtype)[None, :, None]
 
-    def trailing_mean(x: Tensor) -> Tensor:  # (B, N, 3) mean over the last w samples (fewer at the start)
-        c = torch.cumsum(F.pad(x, (0, 0, 1, 0)), 1)
-        idx = torch.arange(1, n + 1, device=x.device)
-        lo = (idx - w).clamp_min(0)
-        cnt = (idx - lo).to(x.dtype)[None, :, None]
-        return (c[:, idx] - c[:, lo]) / cnt
-
-    def trailing_max(x: Tensor) -> Tensor:  # (B, N) max over the last w samples
-        return F.max_pool1d(F.pad(x[:, None], (w - 1, 0), value=0.0), w, 1)[:, 0]
-
-    dev_g = torch.linalg.vector_norm(gyro - trailing_mean(gyro), dim=-1)
-    dev_a = torch.linalg.vector_norm(acc - trailing_mean(acc), dim=-1)
-    rest = (trailing_max(dev_g) < rest_gyro) & (trailing_max(dev_a) < rest_acc)
-    # the first w samples have not been watched long enough
-    rest[:, : w - 1] = False
+    c_g = torch.cumsum(F.pad(gyro, [0, 0, 1, 0]), 1)
+    c_a = torch.cumsum(F.pad(acc, [0, 0, 1, 0]), 1)
+    dev_g = torch.linalg.vector_norm(gyro - (c_g[:, idx] - c_g[:, lo]) / cnt, dim=-1)
+    dev_a = torch.linalg.vector_norm(acc - (c_a[:, idx] - c_a[:, lo]) / cnt, dim=-1)
+    max_g = F.max_pool1d(F.pad(dev_g.unsqueeze(1), [w - 1, 0], value=0.0), w, 1).squeeze(1)
+    max_a = F.max_pool1d(F.pad(dev_a.unsqueeze(1), [w - 1, 0], value=0.0), w, 1).squeeze(1)
+    rest = (max_g < rest_gyro) & (max_a < rest_acc) & (idx >= w).unsqueeze(0)
     return rest.to(gyro.dtype)
 
 
@@ -136,11 +137,20 @@ class ClosedLoopFilter(nn.Module):
         mag_gain:  k_mag, 1/s (default 0.1: ≈ 10 s, VQF's τ_mag ≈ 9 s).
         bias_gain: k_bias, 1/s² (default 0.003).
         rest_time_constant: T_rest, s, of the bias update at rest (default 2).
+        rest_time, rest_gyro, rest_acc: the rest detector (s, rad/s, m/s²; :func:`rest_detector`).
+    The rest window in samples is fixed at training time from the training rate
+    (:meth:`set_rate`, saved as the buffer ``rest_window``; 0: from the data's median step),
+    like the networks' time scale, so evaluation and the exports use the same window.
     """
 
     def __init__(self, use_acc: bool = True, use_mag: bool = True, acc_gain: float = 0.3,
-                 mag_gain: float = 0.1, bias_gain: float = 0.003, rest_time_constant: float = 2.0):
+                 mag_gain: float = 0.1, bias_gain: float = 0.003, rest_time_constant: float = 2.0,
+                 rest_time: float = 1.5, rest_gyro: float = math.radians(2.0), rest_acc: float = 0.5):
         super().__init__()
+        self.rest_time = float(rest_time)
+        self.rest_gyro = float(rest_gyro)
+        self.rest_acc = float(rest_acc)
+        self.register_buffer("rest_window", torch.zeros((), dtype=torch.long))
         self.use_acc = bool(use_acc)
         self.use_mag = bool(use_mag)
         self.log_acc_gain = nn.Parameter(torch.tensor(math.log(acc_gain)))
@@ -148,9 +158,55 @@ class ClosedLoopFilter(nn.Module):
         self.log_bias_gain = nn.Parameter(torch.tensor(math.log(bias_gain)))
         self.log_rest_tc = nn.Parameter(torch.tensor(math.log(rest_time_constant)))
 
+    @torch.jit.unused
+    def set_rate(self, rate_hz: float) -> None:
+        """Fix the rest window (samples) for data at ``rate_hz``."""
+        self.rest_window.fill_(max(2, int(round(self.rest_time * float(rate_hz)))))
+
+    def window(self, dt: Tensor) -> int:
+        w = int(self.rest_window)
+        if w > 0:
+            return w
+        return rest_window(dt, self.rest_time)
+
+    def rest(self, gyro: Tensor, acc: Tensor, dt: Tensor) -> Tensor:
+        """:func:`rest_detector` on raw readings (B, N, 3) with this filter's settings."""
+        return rest_detector(gyro, acc, self.window(dt), self.rest_gyro, self.rest_acc)
+
+    @torch.jit.unused
     def gains(self) -> Dict[str, float]:
         return {"acc_gain": float(self.log_acc_gain.exp()), "mag_gain": float(self.log_mag_gain.exp()),
                 "bias_gain": float(self.log_bias_gain.exp()), "rest_time_constant": float(self.log_rest_tc.exp())}
+
+    def run(self, cal: Dict[str, Tensor], imu: Tensor, dt: Tensor, rot0: Tensor, bias0: Tensor,
+            east_ref: Optional[Tensor], context: int, dtype: torch.dtype) -> Dict[str, Tensor]:
+        """The closed loop behind a :class:`~tcn_ahrs.model.calibration.Calibration` output
+        ``cal`` (dict of (B, N, 3) / (B, N)) for raw imu (B, N, C), dt (B, N): rest detection on
+        the raw readings, trust ``2σ(logit)``, then :meth:`forward` in ``dtype`` from sample
+        ``context`` on (the samples before only warm the causal networks up). Returns ``cal``
+        plus ``rot``, ``gyro_bias``, ``correction`` (B, N - context, ...), ``east_ref``,
+        ``rest``, ``acc_trust``, ``mag_trust`` (B, N)."""
+        rest = self.rest(imu[..., 0:3], imu[..., 3:6], dt)
+        acc_trust = 2.0 * torch.sigmoid(cal["acc_trust_logit"])
+        mag_trust = torch.ones_like(acc_trust)
+        mag: Optional[Tensor] = None
+        if "mag" in cal:
+            mag_trust = 2.0 * torch.sigmoid(cal["mag_trust_logit"])
+            mag = cal["mag"][:, context:].to(dtype)
+        ref: Optional[Tensor] = None
+        if east_ref is not None:
+            ref = east_ref.to(dtype)
+        out = self.forward(cal["gyro"][:, context:].to(dtype), cal["acc"][:, context:].to(dtype), mag,
+                           imu[:, context:, 3:6].to(dtype), acc_trust[:, context:].to(dtype),
+                           mag_trust[:, context:].to(dtype), rest[:, context:].to(dtype),
+                           dt[:, context:].to(dtype), rot0.to(dtype), bias0.to(dtype), ref)
+        res = dict(cal)
+        for k, v in out.items():
+            res[k] = v
+        res["rest"] = rest
+        res["acc_trust"] = acc_trust
+        res["mag_trust"] = mag_trust
+        return res
 
     def forward(self, gyro: Tensor, acc: Tensor, mag: Optional[Tensor], acc_raw: Tensor,
                 acc_trust: Tensor, mag_trust: Tensor, rest: Tensor, dt: Tensor, rot0: Tensor,
@@ -164,22 +220,22 @@ class ClosedLoopFilter(nn.Module):
         Returns ``rot`` (B, N, 3, 3) (entry 0 = rot0), ``gyro_bias`` (B, N, 3), ``correction``
         (B, N, 3) rad/s, ``east_ref`` (B, 3)."""
         acc_unit = _unit(acc)
-        use_mag = self.use_mag and mag is not None
         dt_ = dt.unsqueeze(-1)
         zero = torch.zeros_like(dt_)
-        if use_mag:
+        east_b = torch.zeros_like(gyro)
+        mag_gain = zero
+        ref = torch.zeros_like(gyro[:, 0])
+        if self.use_mag and mag is not None:
             east_b = _unit(torch.cross(mag, acc_raw, dim=-1))
             if east_ref is None:
-                east_ref = east_reference(so3.matrix_to_quat(rot0), acc_raw[:, 0], mag[:, 0])
-            mag_gain = self.log_mag_gain.exp() * mag_trust.unsqueeze(-1)
-        else:
-            east_b = torch.zeros_like(gyro)
-            mag_gain = zero
-        if east_ref is None:
-            east_ref = torch.zeros_like(gyro[:, 0])
-        acc_gain = self.log_acc_gain.exp() * acc_trust.unsqueeze(-1) if self.use_acc else zero
-        rest_gain = (rest.unsqueeze(-1) * dt_ / self.log_rest_tc.exp()).clamp_max(1.0)
-        rot, bias, corr = _scan(rot0, bias0, gyro, acc_unit, east_b, acc_gain.to(gyro.dtype),
-                                mag_gain.to(gyro.dtype), rest_gain.to(gyro.dtype), east_ref, dt_,
-                                self.log_bias_gain.exp().to(gyro.dtype))
-        return {"rot": rot, "gyro_bias": bias, "correction": corr, "east_ref": east_ref}
+                ref = east_reference(so3.matrix_to_quat(rot0), acc_raw[:, 0], mag[:, 0])
+            else:
+                ref = east_ref
+            mag_gain = self.log_mag_gain.exp().to(gyro.dtype) * mag_trust.unsqueeze(-1)
+        acc_gain = zero
+        if self.use_acc:
+            acc_gain = self.log_acc_gain.exp().to(gyro.dtype) * acc_trust.unsqueeze(-1)
+        rest_gain = (rest.unsqueeze(-1) * dt_ / self.log_rest_tc.exp().to(gyro.dtype)).clamp_max(1.0)
+        rot, bias, corr = _scan(rot0, bias0, gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain,
+                                ref, dt_, self.log_bias_gain.exp().to(gyro.dtype))
+        return {"rot": rot, "gyro_bias": bias, "correction": corr, "east_ref": ref}

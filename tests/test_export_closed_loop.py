@@ -1,0 +1,79 @@
+"""Export of the learned closed loop (the default model): the scripted batch and streaming
+modules compute what evaluation computes (LearnedAHRS.run_sequence), after torch.jit.save /
+torch.jit.load, and a streaming module's reset() starts a second recording exactly as fresh."""
+import math
+
+import pytest
+import torch
+
+from tcn_ahrs import so3
+from tcn_ahrs.export import ExportError, export_batch, export_streaming, read_metadata
+from tcn_ahrs.model.ahrs import LearnedAHRS
+
+TOL = 1e-5  # rad, the issue's parity bound
+N = 300
+RATE = 100.0
+
+
+def _model(axes: int) -> LearnedAHRS:
+    torch.manual_seed(3)
+    kw = {} if axes == 9 else dict(mag_net="none", use_mag_term=False)
+    m = LearnedAHRS(axes=axes, loop="closed", tcn={"channels": [4, 4, 4, 4]}, **kw)
+    nets = [m.calibration.gyro_error_net, m.calibration.acc_error_net, m.calibration.mag_error_net]
+    for net in nets:
+        if net is not None:  # zero-initialised output layers: give the error and trust terms a slope
+            torch.nn.init.normal_(net.out.weight, std=0.05)
+            torch.nn.init.normal_(net.out.bias, std=0.05)
+    m.calibration.set_input_stats(torch.randn(axes) * 0.1, torch.rand(axes) + 0.5)
+    m.closed.set_rate(RATE)
+    return m.eval()
+
+
+def _imu(axes: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    parts = [0.3 * torch.randn(N, 3, generator=g),
+             torch.tensor([0.0, 0.0, 9.81]) + 0.3 * torch.randn(N, 3, generator=g)]
+    if axes == 9:
+        parts.append(torch.tensor([0.0, 20.0, -40.0]) + torch.randn(N, 3, generator=g))
+    imu = torch.cat(parts, 1)
+    imu[60:230, 0:6] = torch.tensor([0.01, -0.005, 0.0, 0.0, 0.0, 9.81])  # a rest phase (bias update)
+    return imu
+
+
+def _eager(model, imu, dt, q0):
+    with torch.no_grad():
+        out = model.run_sequence(imu[None], dt[None], so3.quat_to_matrix(q0.double())[None], 0)
+    return so3.matrix_to_quat(out["rot"][0]), out["omega"][0].double()
+
+
+def _angle(a, b):
+    return so3.quat_log(so3.quat_mul(so3.quat_conj(a), b)).norm(dim=-1)
+
+
+@pytest.mark.parametrize("axes", [9, 6])
+def test_loaded_batch_and_streaming_match_evaluation(tmp_path, axes):
+    model = _model(axes)
+    export_batch(model, tmp_path / "b.pt", {"rate_hz": RATE})
+    export_streaming(model, tmp_path / "s.pt", {"rate_hz": RATE})
+    batch, stream = torch.jit.load(str(tmp_path / "b.pt")), torch.jit.load(str(tmp_path / "s.pt"))
+    assert read_metadata(tmp_path / "b.pt")["loop"] == "closed"
+    dt = torch.full((N,), 1.0 / RATE)
+    for seed in (1, 2):  # the second recording runs after reset() on the same streaming module
+        imu = _imu(axes, seed)
+        q0 = so3.quat_normalize(torch.tensor([0.9, 0.1, -0.2, 0.3 * seed]))
+        q_ref, w_ref = _eager(model, imu, dt, q0)
+        q_b, w_b = batch(imu, dt, q0)
+        q_s, w_s = stream.run(imu, dt, q0)
+        assert float(_angle(q_ref, q_b).max()) < TOL
+        assert float(_angle(q_ref, q_s).max()) < TOL
+        assert float((w_b - w_ref).abs().max()) < TOL and float((w_s - w_b).abs().max()) < TOL
+    # step by step after reset = run
+    stream.reset(q0)
+    for k in range(5):
+        q_k, _ = stream.step(imu[k], 1.0 / RATE)
+        assert float(_angle(q_k[None], q_s[k:k + 1]).max()) < 1e-12
+
+
+def test_closed_loop_export_refuses_other_network_precisions(tmp_path):
+    with pytest.raises(ExportError, match="float32"):
+        export_batch(_model(9), tmp_path / "b.pt", {"rate_hz": RATE}, net_dtype=torch.float64)
