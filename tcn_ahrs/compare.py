@@ -49,7 +49,7 @@ import math
 import sys
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
@@ -177,6 +177,11 @@ class ClassicalMethod:
             return self._shared.outputs(self, seqs, init_quats)
         quat, sig = self.quat_batch(seqs, init_quats)
         return _split_outputs(quat, sig, seqs)
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        """One recording on its own (never through a shared batch)."""
+        quat, sig = self.quat_batch([seq], [init_quat])
+        return _split_outputs(quat, sig, [seq])[0]
 
 
 def _split_outputs(quat: torch.Tensor, sig: Dict[str, torch.Tensor], seqs) -> List[EstimatorOutput]:
@@ -599,7 +604,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
             tune_max_seconds_per_recording: Optional[float] = 60.0, tune_lead_seconds: float = 10.0,
             tune_recordings: Optional[int] = None, tune_max_batch: int = 128, dataset: Optional[str] = None,
             plots: bool = False, trajectories: bool = False, align: bool = True, device: str = "cpu",
-            reanchor: Optional[int] = None,
+            reanchor: Optional[int] = None, on_calibrated: Optional[Mapping[str, str]] = None,
             verbose: bool = False, progress: bool = True, extra: Optional[dict] = None) -> dict:
     """Build, tune, evaluate, write tables.
 
@@ -612,6 +617,8 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
         both_axes: on 9-axis data also the 6D variant of each method.
         variants: ``"default"`` and/or ``"tuned"``; ``tune=False`` drops ``"tuned"``.
         ckpts: learned checkpoints ``{label: path}`` (columns after the methods).
+        on_calibrated: ``{label: checkpoint}``: every classical/peer column once more, run on
+            that model's calibrated signals (``"<column> on <label>"``).
         ablation_ckpts: ``{label: path}`` for the Table 3 ablation layout (also scored in the
             main tables); a label equal to one of ``ckpts`` with the same path is reused.
         out_dir: folder for results.json / results.md (None: write nothing).
@@ -660,6 +667,14 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
     tune_s = time.perf_counter() - t0
 
     estimators, specs = build_estimators(specs, device, reanchor)
+    for label, path in dict(on_calibrated or {}).items():
+        from .estimators.learned import OnLearnedCalibration
+
+        for s_, e in list(zip(specs, estimators)):
+            if s_.kind in ("classical", "peer"):
+                w = OnLearnedCalibration(e, path, label, device)
+                estimators.append(w)
+                specs.append(replace(s_, name=w.name))
     shared = share_batches(estimators)
     if progress:
         estimators = [_timed(e) for e in estimators]
@@ -805,7 +820,7 @@ def average_rows(results: dict, keys: Sequence[str] = ("aae_deg", "aye_deg", "in
 # Hydra entry points
 # ===========================================================================
 
-COMPARE_KEYS = {"methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_max_seconds_per_recording",
+COMPARE_KEYS = {"on_calibrated", "methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_max_seconds_per_recording",
                 "tune_lead_seconds", "tune_recordings", "tune_max_batch", "ckpts", "ablation_ckpts", "out", "plots",
                 "trajectories", "align", "device", "threads", "verbose", "reanchor"}
 BENCHMARK_KEYS = COMPARE_KEYS | {"mode", "ckpt", "ckpt_label", "speed", "quick"}  # speed/quick: speed mode
@@ -869,7 +884,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
                   dataset=str(cfg.data.name), plots=bool(cfg.get("plots", False)),
                   trajectories=bool(cfg.get("trajectories", False)), align=bool(cfg.get("align", True)),
                   device=str(cfg.get("device", "cpu")), verbose=bool(cfg.get("verbose", False)),
-                  reanchor=cfg.get("reanchor"),
+                  reanchor=cfg.get("reanchor"), on_calibrated=_plain(cfg.get("on_calibrated")) or None,
                   extra={"split": split, "tune_split": tune_split if cfg.get("tune") else None,
                          "config": _plain(cfg), "load_s": round(load_s, 2)})
     print(f"results in {out}")

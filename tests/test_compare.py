@@ -320,3 +320,31 @@ def test_shared_batch_of_variants_equals_separate_runs(sims):
         for out, r in zip(e.run_batch(seqs, q0s), ref[e.name]):
             np.testing.assert_allclose(out.quat, r.quat, atol=1e-12)
             assert out.quat.shape == r.quat.shape
+
+
+def test_classical_method_runs_one_recording_alone(sims):
+    """ClassicalMethod.run (one recording) == its batched path; it used to be unreachable."""
+    m = cmp.ClassicalMethod(Madgwick(), 9)
+    q0 = initial_quat(sims[1])
+    np.testing.assert_allclose(m.run(sims[1], q0).quat, m.run_batch([sims[1]], [q0])[0].quat, atol=1e-12)
+
+
+def test_on_calibrated_columns_use_the_models_calibration(sims, tmp_path):
+    """An untrained model's calibration is the identity, so a filter on its calibrated signals
+    scores exactly as on the raw ones; a model with a scaled gyro changes the column."""
+    import torch
+
+    from tcn_ahrs.estimators.learned import OnLearnedCalibration
+    from tcn_ahrs.model.ahrs import LearnedAHRS
+
+    model = LearnedAHRS(axes=9, loop="closed")
+    seq = sims[1]
+    base = cmp.ClassicalMethod(Madgwick(), 9)
+    q0 = initial_quat(seq)
+    same = OnLearnedCalibration(base, model, "untrained").run(seq, q0)
+    np.testing.assert_allclose(same.quat, base.run(seq, q0).quat, atol=1e-6)
+    with torch.no_grad():
+        model.calibration.gyro_matrix.delta.fill_diagonal_(0.05)
+    wrapped = OnLearnedCalibration(base, model, "scaled")
+    assert wrapped.name == "madgwick9d on scaled" and wrapped.axes == 9
+    np.testing.assert_allclose(wrapped.calibrated(seq).gyro, 1.05 * seq.gyro, rtol=1e-5, atol=1e-7)

@@ -15,15 +15,19 @@ from .base import EstimatorOutput
 
 
 class LearnedEstimator:
-    """TCN calibration + open-loop ECF, run on a whole recording (feed-forward, no loop).
+    """A trained :class:`LearnedAHRS` on a whole recording, run as the checkpoint says: the
+    learned closed loop (default model; sample by sample, float64) or the paper's open-loop ECF
+    (feed-forward).
 
-    The network sees every sample (causally); the ECF and the integration start at the first
+    The networks see every sample (causally); the filter and the integration start at the first
     sample with valid ground truth from ``init_quat`` (identity when ``None``).
 
     Output signals (N, 3), body frame:
         ``gyro_correction`` ω̂ − y_gyr (rad/s; everything the model adds to the raw gyro),
         ``gyro_bias`` the TCN's gyro error term ω̃ (rad/s, Eq. 12),
-        ``acc_error`` ã (m/s^2, Eq. 13), ``mag_error`` m̃ (uT, Eq. 14; 9-axis only).
+        ``acc_error`` ã (m/s^2, Eq. 13), ``mag_error`` m̃ (uT, Eq. 14; 9-axis only);
+        closed loop also ``gyro_bias_state`` b (rad/s), ``acc_trust``, ``mag_trust`` (N,) and
+        ``rest`` (N,) from the rest detector.
     """
 
     def __init__(self, model: Union[LearnedAHRS, str, Path], name: str = "TCN-ECF",
@@ -71,4 +75,46 @@ class LearnedEstimator:
         }
         if "mag_error" in out:
             sig["mag_error"] = out["mag_error"][0].cpu().double().numpy()
+        if "gyro_bias" in out:  # closed loop: states from `start` on
+            n0 = len(seq) - out["gyro_bias"].shape[1]
+            b = np.zeros((len(seq), 3))
+            b[n0:] = out["gyro_bias"][0].cpu().numpy()
+            sig["gyro_bias_state"] = b
+            for k in ("acc_trust", "mag_trust", "rest"):
+                sig[k] = out[k][0].cpu().double().numpy()
         return EstimatorOutput(quat=quat, signals=sig)
+
+
+class OnLearnedCalibration:
+    """Any estimator run on the *calibrated* signals of a trained model: gyro ω̂_gyr, accelerometer
+    ĝ and magnetometer b̂ (Eqs. 12-14: ``R̂ y − e``, the networks' error terms subtracted; no
+    filter state of the model) instead of the raw readings — does the learned calibration help a
+    classical filter? Name: ``"<estimator> on <label>"``; axes and heading_free are the wrapped
+    estimator's."""
+
+    def __init__(self, estimator, model: Union[LearnedAHRS, str, Path], label: str = "learned calibration",
+                 device: Union[str, torch.device] = "cpu"):
+        self.inner = estimator
+        self.model = (model_from_checkpoint(model) if isinstance(model, (str, Path)) else model).to(device).eval()
+        self.device = torch.device(device)
+        self.name = f"{estimator.name} on {label}"
+        self.axes = getattr(estimator, "axes", None)
+        self.heading_free = bool(getattr(estimator, "heading_free", False))
+
+    def calibrated(self, seq: ImuSequence) -> ImuSequence:
+        from dataclasses import replace
+
+        axes = self.model.axes
+        if axes == 9 and not seq.has_mag:
+            raise CheckpointError(f"{seq.source}: field 'mag': the calibration model is 9-axis but recording "
+                                  f"{seq.name!r} has no magnetometer")
+        parts = [seq.gyro, seq.accel] + ([seq.mag] if axes == 9 else [])
+        imu = torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=self.device)[None]
+        with torch.no_grad():
+            cal = self.model.calibration(imu)
+        f = lambda k: cal[k][0].cpu().double().numpy()  # noqa: E731
+        return replace(seq, gyro=f("gyro"), accel=f("acc"), mag=f("mag") if axes == 9 else seq.mag,
+                       check_units=False)
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        return self.inner.run(self.calibrated(seq), init_quat)
