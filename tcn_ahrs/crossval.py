@@ -53,7 +53,8 @@ def markdown(result: Dict[str, Any]) -> str:
     keys = [k for k in SUMMARY_KEYS if any(k in m for m in result["summary"].values())]
     lines = [f"# Cross-validation: {result['dataset']} ({len(result['folds'])} folds, leave-recordings-out)\n",
              "Each fold: trained on the other training recordings, checkpoint selected on the fold's "
-             "recordings (whole), scored on them. Degrees; mean ± sample std over folds.\n",
+             "recordings (whole), scored on them (optimistic: selected there), next to the last "
+             "epoch's checkpoint (no selection). Degrees; mean ± sample std over folds.\n",
              "| method | " + " | ".join(LABELS[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
     for method, m in result["summary"].items():
         cells = [f"{m[k]['mean']:.2f} ± {m[k]['std']:.2f}" if k in m else "—" for k in keys]
@@ -102,8 +103,14 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
             print(f"== fold {i}: reusing {best}")
         eval_seqs = [s for s in load_split(fcfg.data, "val") if s.has_gt]
         tune_seqs = load_split(fcfg.data, "train") if cv.get("tune") else []
+        # the selected checkpoint's score on the fold it was selected on is optimistic; the last
+        # epoch's (no selection) is not: both are reported
+        ckpts = {label: str(best)}
+        last = run_dir / "checkpoints" / "last.ckpt"
+        if last.is_file():
+            ckpts[f"{label} (last epoch)"] = str(last)
         res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=int(cfg.data.get("axes", 9)),
-                      both_axes=False, tune=bool(cv.get("tune")), ckpts={label: str(best)},
+                      both_axes=False, tune=bool(cv.get("tune")), ckpts=ckpts,
                       out_dir=run_dir / "eval", dataset=str(cfg.data.name),
                       tune_max_seconds_per_recording=cv.get("tune_max_seconds_per_recording"), progress=True)
         means = {m: {k: v.get("mean", {}).get(k) for k in SUMMARY_KEYS} for m, v in res["methods"].items()}
