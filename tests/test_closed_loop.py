@@ -114,3 +114,20 @@ def test_scripted_scan_equals_python_scan(dtype):
     eye = torch.eye(3, dtype=dtype).expand(rot.shape)
     tol = 1e-4 if dtype == torch.float32 else 1e-12
     assert (rot.transpose(-1, -2) @ rot - eye).abs().max() < tol
+
+
+def test_gyro_error_term_starts_at_the_bias_seen_at_rest():
+    from tcn_ahrs.data import SequenceStore
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.train import rest_gyro_mean
+
+    seq = simulate("static", 30.0, 100.0, seed=3)
+    model = LearnedAHRS(axes=9, loop="closed")
+    model.closed.set_rate(100.0)
+    bias = rest_gyro_mean(model, SequenceStore([seq], 9))
+    np.testing.assert_allclose(bias.numpy(), seq.gyro.mean(0), atol=2e-3)
+    model.calibration.set_gyro_bias(bias)
+    imu = torch.as_tensor(np.concatenate([seq.gyro, seq.accel, seq.mag], 1), dtype=torch.float32)[None]
+    with torch.no_grad():
+        cal = model.calibration(imu)
+    torch.testing.assert_close(cal["gyro"][0], imu[0, :, 0:3] - bias, atol=1e-6, rtol=0)

@@ -109,6 +109,19 @@ class Calibration(nn.Module):
         self.input_mean.copy_(mean)
         self.input_std.copy_(std.clamp_min(1e-6))
 
+    @torch.no_grad()
+    def set_gyro_bias(self, bias: Tensor) -> None:
+        """Start the gyro error term at a constant ``bias`` (3,) rad/s (the output layer's bias;
+        its weights stay as they are): ω̂_gyr = R̂ y − bias for an untrained network."""
+        net = self.gyro_error_net
+        if net is None:
+            return
+        b = torch.as_tensor(bias, dtype=torch.float32).reshape(3) / float(self.error_scale["gyro"])
+        if isinstance(net, ConstantError):
+            net.bias[0:3] = b
+        else:
+            net.out.bias[0:3] = b
+
     @property
     def receptive_field(self) -> int:
         nets = [n for n in (self.gyro_error_net, self.acc_error_net, self.mag_error_net) if n is not None]
