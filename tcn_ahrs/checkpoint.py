@@ -106,7 +106,9 @@ def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") 
     state = ckpt.get("state_dict", ckpt.get("model_state"))
     if state is None:
         raise CheckpointError(f"{path}: no 'state_dict' in checkpoint")
-    state = {k[len("model."):]: v for k, v in state.items() if k.startswith("model.")} or dict(state)
+    # the weight average (train.ema_decay) is the model when present; "model." the raw weights
+    prefix = "ema_model." if any(k.startswith("ema_model.") for k in state) else "model."
+    state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)} or dict(state)
     if model.closed is not None and "closed.rest_window" not in state:
         # written before the rest window was stored: it was the median step of the data, i.e. the
         # training rate recorded with the checkpoint (0: keep deriving it from the data)

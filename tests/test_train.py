@@ -149,3 +149,18 @@ def test_ddp_two_cpu_processes(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert (tmp_path / "checkpoints" / "last.ckpt").is_file()
     assert "Average" in r.stdout
+
+
+def test_weight_average_is_what_validation_and_release_use(tmp_path, seqs):
+    """train.ema_decay: the checkpoint keeps the raw weights (resume) and their average; the
+    average is the model that model_from_checkpoint (evaluation, export, release) builds."""
+    run = tmp_path / "ema"
+    _train(run, seqs, ["train.ema_decay=0.5"])
+    ck = load_checkpoint(run / "checkpoints" / "last.ckpt")
+    raw = {k[len("model."):]: v for k, v in ck["state_dict"].items() if k.startswith("model.")}
+    avg = {k[len("ema_model."):]: v for k, v in ck["state_dict"].items() if k.startswith("ema_model.")}
+    assert set(raw) == set(avg)
+    assert any(not torch.equal(raw[k], avg[k]) for k in raw if raw[k].is_floating_point())
+    model = model_from_checkpoint(run / "checkpoints" / "last.ckpt")
+    for k, v in model.state_dict().items():
+        assert torch.equal(v, avg[k])
