@@ -28,7 +28,7 @@ from .model.ahrs import LearnedAHRS
 
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
-              "attitude_delta", "ema_decay"}
+              "attitude_delta", "ema_decay", "init_gyro_bias"}
 
 
 class AHRSModule(pl.LightningModule):
@@ -341,7 +341,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
     module.model.calibration.set_input_stats(mean, std)
     if module.model.closed is not None:
         module.model.closed.set_rate(module.hparams.rate_hz)
-        bias = rest_gyro_mean(module.model, dm.train_store)
+        bias = rest_gyro_mean(module.model, dm.train_store) if cfg.train.get("init_gyro_bias", True) else None
         if bias is not None:
             # the static gyro bias, measured where the training recordings are at rest, as the
             # gyro error term's starting point: a TCN output that must grow from zero to an
