@@ -391,7 +391,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
             warnings.warn(f"no held-out recordings with ground truth in split {ev.get('split', 'test')!r}; "
                           "skipping the evaluation")
             return result
-        learned = LearnedEstimator(best, name=str(ev.get("name", "TCN-ECF")))
+        learned = LearnedEstimator(best, name=str(ev.get("name", "Learned AHRS")))
         estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", [])))
         res = evaluate(estimators, test_seqs, out_dir=run_dir / "eval", axes=axes,
                        dataset=str(cfg.data.name), plots=bool(ev.get("plots", True)),
@@ -426,7 +426,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
                          f"'{cfg.data.split}' (root {cfg.data.get('root')})")
     out = cfg.get("out") or str(_run_dir(cfg))
-    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "TCN-ECF"), device=str(cfg.get("device", "cpu")),
+    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
                                reanchor=cfg.get("reanchor"))
     estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []))
     res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),

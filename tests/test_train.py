@@ -49,7 +49,7 @@ def test_tiny_run_writes_checkpoints_config_and_resumes(tmp_path, seqs):
     assert (ck / "last.ckpt").is_file() and (ck / "best.ckpt").is_file()
     assert (run / "config_resolved.yaml").is_file()
     assert "window: 400" in (run / "config_resolved.yaml").read_text()
-    assert res["results"] is not None and "TCN-ECF" in res["results"]["methods"]
+    assert res["results"] is not None and "Learned AHRS" in res["results"]["methods"]
     last = load_checkpoint(ck / "last.ckpt")
     assert last["epoch"] == 1 and last["tcn_ahrs"]["layout"]["axes"] == 9
     assert not list(ck.glob("*.tmp"))  # no leftovers of the atomic writes
