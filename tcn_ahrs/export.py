@@ -276,7 +276,37 @@ def mag_error_rows(mag: Tensor, acc_raw: Tensor, east: Tensor) -> Tensor:
 
 
 # ===================================================================== batch module
-class BatchAHRS(nn.Module):
+class _Inputs(nn.Module):
+    """Input checks shared by every exported module (``self.axes`` set by the subclass)."""
+
+    def _check_imu(self, imu: Tensor):
+        if imu.dim() != 2 or imu.size(1) != self.axes:
+            raise ValueError("imu: expected shape (N, " + str(self.axes) + ") [gyro rad/s, acc m/s^2"
+                             + (", mag uT" if self.axes == 9 else "") + "], got " + str(list(imu.shape)))
+        if imu.size(0) < 1:
+            raise ValueError("imu: expected at least one sample")
+
+    def _q0(self, q0: Tensor) -> Tensor:
+        if q0.numel() != 4:
+            raise ValueError("q0: expected 4 values (w, x, y, z), got shape " + str(list(q0.shape)))
+        q = q0.reshape(4).to(torch.float64)
+        n = float(torch.linalg.norm(q))
+        if not (n > 0.0 and math.isfinite(n)):
+            raise ValueError("q0: expected a non-zero finite quaternion (w, x, y, z)")
+        return q / n
+
+    def _dt(self, dt: Union[float, Tensor], n: int, dtype: torch.dtype = torch.float64) -> Tensor:
+        if isinstance(dt, Tensor):
+            d = dt.to(dtype)
+            if d.dim() == 0:
+                return d.expand(n)
+            if d.dim() != 1 or d.size(0) != n:
+                raise ValueError("dt: expected a float or shape (" + str(n) + ",), got " + str(list(d.shape)))
+            return d
+        return torch.full([n], float(dt), dtype=dtype)
+
+
+class BatchAHRS(_Inputs):
     """Whole-sequence learned AHRS (TorchScript-able). See the module docstring for the contract.
 
     ``forward(imu (N, C), dt float | (N,), q0 (4,)) -> (quat (N, 4), omega (N, 3))``, float64.
@@ -333,32 +363,6 @@ class BatchAHRS(nn.Module):
         return self.metadata_json
 
     # ------------------------------------------------------------------ pieces
-    def _check_imu(self, imu: Tensor):
-        if imu.dim() != 2 or imu.size(1) != self.axes:
-            raise ValueError("imu: expected shape (N, " + str(self.axes) + ") [gyro rad/s, acc m/s^2"
-                             + (", mag uT" if self.axes == 9 else "") + "], got " + str(list(imu.shape)))
-        if imu.size(0) < 1:
-            raise ValueError("imu: expected at least one sample")
-
-    def _q0(self, q0: Tensor) -> Tensor:
-        if q0.numel() != 4:
-            raise ValueError("q0: expected 4 values (w, x, y, z), got shape " + str(list(q0.shape)))
-        q = q0.reshape(4).to(torch.float64)
-        n = float(torch.linalg.norm(q))
-        if not (n > 0.0 and math.isfinite(n)):
-            raise ValueError("q0: expected a non-zero finite quaternion (w, x, y, z)")
-        return q / n
-
-    def _dt(self, dt: Union[float, Tensor], n: int) -> Tensor:
-        if isinstance(dt, Tensor):
-            d = dt.to(torch.float64)
-            if d.dim() == 0:
-                return d.expand(n)
-            if d.dim() != 1 or d.size(0) != n:
-                raise ValueError("dt: expected a float or shape (" + str(n) + ",), got " + str(list(d.shape)))
-            return d
-        return torch.full([n], float(dt), dtype=torch.float64)
-
     def errors(self, imu: Tensor) -> Tensor:
         """Learned error terms e = (ω̃, ã[, m̃]) (N, C) float64, from the stacked causal TCNs."""
         n = imu.size(0)
@@ -685,7 +689,7 @@ class StreamingAHRS(BatchAHRS):
 
 # ======================================================================= export API
 # ============================================================ closed loop (default model)
-class ClosedLoopBatch(nn.Module):
+class ClosedLoopBatch(_Inputs):
     """The learned closed loop, whole sequence: the model's own :class:`Calibration` and
     :class:`ClosedLoopFilter` modules scripted as they are (no restated math), run exactly as
     :meth:`LearnedAHRS.run_sequence` runs them in evaluation: networks in float32, rest
@@ -718,32 +722,6 @@ class ClosedLoopBatch(nn.Module):
     def metadata(self) -> str:
         return self.metadata_json
 
-    def _check_imu(self, imu: Tensor):
-        if imu.dim() != 2 or imu.size(1) != self.axes:
-            raise ValueError("imu: expected shape (N, " + str(self.axes) + ") [gyro rad/s, acc m/s^2"
-                             + (", mag uT" if self.axes == 9 else "") + "], got " + str(list(imu.shape)))
-        if imu.size(0) < 1:
-            raise ValueError("imu: expected at least one sample")
-
-    def _q0(self, q0: Tensor) -> Tensor:
-        if q0.numel() != 4:
-            raise ValueError("q0: expected 4 values (w, x, y, z), got shape " + str(list(q0.shape)))
-        q = q0.reshape(4).to(torch.float64)
-        n = float(torch.linalg.norm(q))
-        if not (n > 0.0 and math.isfinite(n)):
-            raise ValueError("q0: expected a non-zero finite quaternion (w, x, y, z)")
-        return q / n
-
-    def _dt(self, dt: Union[float, Tensor], n: int) -> Tensor:
-        if isinstance(dt, Tensor):
-            d = dt.to(torch.float32)
-            if d.dim() == 0:
-                return d.expand(n)
-            if d.dim() != 1 or d.size(0) != n:
-                raise ValueError("dt: expected a float or shape (" + str(n) + ",), got " + str(list(d.shape)))
-            return d
-        return torch.full([n], float(dt), dtype=torch.float32)
-
     def _run(self, x: Tensor, d: Tensor, rot: Tensor, bias: Tensor, east_ref: Optional[Tensor]) -> Dict[str, Tensor]:
         """x (1, N, C) float32, d (1, N) float32 -> the loop's dict (LearnedAHRS.filter_closed_loop)."""
         return self.closed.run(self.calibration(x), x, d, rot, bias, east_ref, 0, torch.float64)
@@ -759,7 +737,7 @@ class ClosedLoopBatch(nn.Module):
     def forward(self, imu: Tensor, dt: Union[float, Tensor], q0: Tensor) -> Tuple[Tensor, Tensor]:
         self._check_imu(imu)
         n = imu.size(0)
-        d = self._dt(dt, n)
+        d = self._dt(dt, n, torch.float32)  # float32 as in evaluation (LearnedEstimator)
         rot0 = so3.quat_to_matrix(self._q0(q0)).unsqueeze(0)
         out = self._run(imu.to(torch.float32).unsqueeze(0), d.unsqueeze(0), rot0,
                         torch.zeros(1, 3, dtype=torch.float64), None)
@@ -838,7 +816,7 @@ class ClosedLoopStreaming(ClosedLoopBatch):
     def run(self, imu: Tensor, dt: Union[float, Tensor], q0: Tensor) -> Tuple[Tensor, Tensor]:
         self._check_imu(imu)
         n = imu.size(0)
-        d = self._dt(dt, n)
+        d = self._dt(dt, n, torch.float32)
         self.reset(q0)
         qs: List[Tensor] = []
         ws: List[Tensor] = []
