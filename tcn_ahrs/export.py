@@ -789,24 +789,12 @@ class ClosedLoopStreaming(ClosedLoopBatch):
             out = self._run(x, d, self.rot, self.bias, None)  # the initial state; sets east_ref
             self.east_ref = out["east_ref"]
             return self._quat(self.rot[0]), self._omega(out)[0]
-        cal = self.calibration(x)
-        # the newest sample as the second of a two-sample window whose first entry is the state
-        two: Dict[str, Tensor] = {}
-        for k, v in cal.items():
-            two[k] = v[:, -2:]
-        out = self.closed.run(two, x[:, -2:], d[:, -2:], self.rot, self.bias, self.east_ref, 0, torch.float64)
-        # the rest flag needs the whole history: recompute it there and redo the step with it
-        rest = self.closed.rest(x[..., 0:3], x[..., 3:6], d)[:, -2:].to(torch.float64)
-        mag: Optional[Tensor] = None
-        if "mag" in two:
-            mag = two["mag"].to(torch.float64)
-        res = self.closed.forward(two["gyro"].to(torch.float64), two["acc"].to(torch.float64), mag,
-                                  x[:, -2:, 3:6].to(torch.float64), out["acc_trust"].to(torch.float64),
-                                  out["mag_trust"].to(torch.float64), rest, d[:, -2:].to(torch.float64),
-                                  self.rot, self.bias, self.east_ref)
+        # the filter over the last two samples from the carried state (entry 0 = the state), the
+        # networks and the rest detector over the whole history: one call of the batch code
+        res = self.closed.run(self.calibration(x), x, d, self.rot, self.bias, self.east_ref, m - 2, torch.float64)
         self.rot = res["rot"][:, 1]
         self.bias = res["gyro_bias"][:, 1]
-        omega = two["gyro"][0, 1].to(torch.float64) - res["gyro_bias"][0, 1] + res["correction"][0, 1]
+        omega = res["gyro"][0, m - 1].to(torch.float64) - res["gyro_bias"][0, 1] + res["correction"][0, 1]
         return self._quat(self.rot[0]), omega
 
     def forward(self, sample: Tensor, dt: float) -> Tuple[Tensor, Tensor]:  # type: ignore[override]
