@@ -169,8 +169,7 @@ class AHRSModule(pl.LightningModule):
         aaes, losses = [], []
         for i in range(len(seqs)):
             m = valid[i]
-            err = so3.log(rot_gt[i, m].double().transpose(-1, -2) @ out["rot"][i, m])
-            aaes.append(torch.sqrt((err ** 2).sum(-1).mean()) * (180.0 / math.pi))
+            aaes.append(_aae_deg(rot_gt[i, m], out["rot"][i, m]))
             losses.append(attitude_loss(out["rot"][i:i + 1], rot_gt[i:i + 1], valid[i:i + 1],
                                         float(self.hparams.attitude_delta)))
         self.log("val/loss", torch.stack(losses).mean().float(), prog_bar=True, batch_size=1)
@@ -187,10 +186,7 @@ class AHRSModule(pl.LightningModule):
         k0 = int(torch.argmax(valid[0].to(torch.int8)))
         out = self.eval_model.run_sequence(s["imu"], s["dt"], s["rot"][:, k0], k0)
         loss = increment_loss(out["omega"], s["dt"], s["rot"], valid, self.loss_js, self.hparams.huber_delta)
-        # AAE (Eq. 29) on the valid samples; the estimate starts at ground truth at k0, so no
-        # alignment is needed (same definition as tcn_ahrs.metrics.aae).
-        err = so3.log(s["rot"][0, valid[0]].double().transpose(-1, -2) @ out["rot"][0, valid[0]])
-        aae = torch.sqrt((err ** 2).sum(-1).mean()) * (180.0 / math.pi)
+        aae = _aae_deg(s["rot"][0, valid[0]], out["rot"][0, valid[0]])
         self.log("val/loss", loss, prog_bar=True, batch_size=1, sync_dist=True)
         self.log("val/aae_deg", aae.float(), prog_bar=True, batch_size=1, sync_dist=True)
 
@@ -214,6 +210,14 @@ class AHRSModule(pl.LightningModule):
 
 
 # ====================================================================== helpers
+def _aae_deg(rot_gt: torch.Tensor, rot_est: torch.Tensor) -> torch.Tensor:
+    """AAE (Eq. 29) of (M, 3, 3) estimates against ground truth on valid samples, degrees, float64.
+    Validation starts the estimate at ground truth, so no alignment is needed (the same
+    definition as :func:`tcn_ahrs.metrics.aae`)."""
+    err = so3.log(rot_gt.double().transpose(-1, -2) @ rot_est.double())
+    return torch.sqrt((err ** 2).sum(-1).mean()) * (180.0 / math.pi)
+
+
 def rest_gyro_mean(model: LearnedAHRS, store) -> Optional[torch.Tensor]:
     """Mean raw gyro reading (3,) over the samples the model's rest detector flags in the
     training recordings (None when none is at rest)."""

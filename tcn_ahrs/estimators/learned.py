@@ -14,6 +14,17 @@ from ..sequence import ImuSequence
 from .base import EstimatorOutput
 
 
+def model_input(model: LearnedAHRS, seq: ImuSequence, device, what: str = "model") -> torch.Tensor:
+    """The recording as the model's input (1, N, C) float32: gyro, accelerometer (and, for a
+    9-axis model, magnetometer); a 9-axis model on a recording without one is an error."""
+    if model.axes == 9 and not seq.has_mag:
+        raise CheckpointError(
+            f"{seq.source}: field 'mag': the {what} (variant '{model.variant}') expects 9-axis input but "
+            f"recording {seq.name!r} has no magnetometer; use a 6-axis checkpoint")
+    parts = [seq.gyro, seq.accel] + ([seq.mag] if model.axes == 9 else [])
+    return torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=device)[None]
+
+
 class LearnedEstimator:
     """A trained :class:`LearnedAHRS` on a whole recording, run as the checkpoint says: the
     learned closed loop (default model; sample by sample, float64) or the paper's open-loop ECF
@@ -49,13 +60,7 @@ class LearnedEstimator:
         return self.model.axes
 
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
-        if self.axes == 9 and not seq.has_mag:
-            raise CheckpointError(
-                f"{seq.source}: field 'mag': the model {self.ckpt_path or ''} (variant "
-                f"'{self.model.variant}') expects 9-axis input but recording {seq.name!r} has no "
-                "magnetometer; use a 6-axis checkpoint")
-        parts = [seq.gyro, seq.accel] + ([seq.mag] if self.axes == 9 else [])
-        imu = torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=self.device)[None]
+        imu = model_input(self.model, seq, self.device, f"model {self.ckpt_path or ''}")
         dt = torch.as_tensor(seq.dt, dtype=torch.float32, device=self.device)[None]
         start = 0
         if seq.quat_valid is not None and seq.quat_valid.any():
@@ -105,11 +110,7 @@ class OnLearnedCalibration:
         from dataclasses import replace
 
         axes = self.model.axes
-        if axes == 9 and not seq.has_mag:
-            raise CheckpointError(f"{seq.source}: field 'mag': the calibration model is 9-axis but recording "
-                                  f"{seq.name!r} has no magnetometer")
-        parts = [seq.gyro, seq.accel] + ([seq.mag] if axes == 9 else [])
-        imu = torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=self.device)[None]
+        imu = model_input(self.model, seq, self.device, "calibration model")
         with torch.no_grad():
             cal = self.model.calibration(imu)
         f = lambda k: cal[k][0].cpu().double().numpy()  # noqa: E731

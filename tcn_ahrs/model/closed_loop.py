@@ -80,11 +80,11 @@ def rest_detector(gyro: Tensor, acc: Tensor, window: int, rest_gyro: float = mat
     return rest.to(gyro.dtype)
 
 
-def east_reference(q0: Tensor, acc0: Tensor, mag0: Tensor) -> Tensor:
+def east_reference(rot0: Tensor, acc0: Tensor, mag0: Tensor) -> Tensor:
     """Horizontal unit vector (B, 3), navigation frame: the measured magnetic east
-    ``unit(m × a)`` at the initial attitude ``q0`` (B, 4)."""
+    ``unit(m × a)`` at the initial attitude ``rot0`` (B, 3, 3) ``nav_from_body``."""
     east_b = _unit(torch.cross(mag0, acc0, dim=-1))
-    e = so3.quat_rotate(q0, east_b)
+    e = (rot0 @ east_b.unsqueeze(-1)).squeeze(-1)
     e = torch.stack([e[:, 0], e[:, 1], torch.zeros_like(e[:, 2])], -1)
     return _unit(e)
 
@@ -228,7 +228,7 @@ class ClosedLoopFilter(nn.Module):
         if self.use_mag and mag is not None:
             east_b = _unit(torch.cross(mag, acc_raw, dim=-1))
             if east_ref is None:
-                ref = east_reference(so3.matrix_to_quat(rot0), acc_raw[:, 0], mag[:, 0])
+                ref = east_reference(rot0, acc_raw[:, 0], mag[:, 0])
             else:
                 ref = east_ref
             mag_gain = self.log_mag_gain.exp().to(gyro.dtype) * mag_trust.unsqueeze(-1)
