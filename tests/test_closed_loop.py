@@ -131,3 +131,30 @@ def test_gyro_error_term_starts_at_the_bias_seen_at_rest():
     with torch.no_grad():
         cal = model.calibration(imu)
     torch.testing.assert_close(cal["gyro"][0], imu[0, :, 0:3] - bias, atol=1e-6, rtol=0)
+
+
+def test_field_gates_drop_the_corrections_of_implausible_samples():
+    """acc_reject / mag_min..mag_max (the ECF's Eq. 7) zero the trust where the raw readings are
+    implausible, keep it elsewhere, and are off by default."""
+    imu, dt = _imu(n=400, axes=9)
+    imu[:, 100:150, 3:6] *= 2.0        # 2 g: a large external acceleration
+    imu[:, 250:300, 6:9] *= 0.3        # field norm ≈ 13 µT: a local disturbance
+    rot0 = torch.eye(3, dtype=torch.float64)[None]
+    bias0 = torch.zeros(1, 3, dtype=torch.float64)
+    trusts = {}
+    for name, gates in (("off", {}), ("on", dict(acc_reject=1.0, mag_min=20.0, mag_max=70.0))):
+        model = LearnedAHRS(axes=9, loop="closed", closed_loop=dict(NO_REST, **gates)).double().eval()
+        with torch.no_grad():
+            cal = model.calibration(imu)
+            out = model.closed.run(cal, imu, dt, rot0, bias0, None, 0, torch.float64)
+        trusts[name] = (out["acc_trust"][0], out["mag_trust"][0])
+    acc_off, mag_off = trusts["off"]
+    acc_on, mag_on = trusts["on"]
+    assert torch.all(acc_off > 0) and torch.all(mag_off > 0)
+    a_norm = imu[0, :, 3:6].norm(dim=-1)
+    m_norm = imu[0, :, 6:9].norm(dim=-1)
+    acc_ok = (a_norm - G).abs() < 1.0
+    mag_ok = acc_ok & (m_norm > 20.0) & (m_norm < 70.0)
+    assert acc_ok[100:150].sum() == 0 and mag_ok[250:300].sum() == 0  # the disturbances are caught
+    torch.testing.assert_close(acc_on, acc_off * acc_ok)
+    torch.testing.assert_close(mag_on, mag_off * mag_ok)

@@ -77,6 +77,19 @@ def normalize(v: Tensor, dim: int = -1) -> Tensor:
     return v / n.clamp_min(1e-300 if v.dtype == torch.float64 else 1e-30)
 
 
+def field_gates(accel: Tensor, mag: Optional[Tensor], a_min: Tensor, m_min: Tensor, m_max: Tensor,
+                gravity: float) -> Tuple[Tensor, Tensor]:
+    """The ECF's Eq. 7 tests (bool, (..., N)) on raw accel, mag (..., N, 3):
+    ``acc_ok = | |a| − g | < a_min`` (no large external acceleration) and
+    ``mag_ok = acc_ok & m_min < |m| < m_max`` (a plausible Earth field; the measured east uses a).
+    Thresholds broadcast against (..., N) (m/s², µT). Without a magnetometer mag_ok is all False."""
+    acc_ok = (torch.linalg.vector_norm(accel, dim=-1) - gravity).abs() < a_min
+    if mag is None:
+        return acc_ok, torch.zeros_like(acc_ok)
+    m = torch.linalg.vector_norm(mag, dim=-1)
+    return acc_ok, acc_ok & (m > m_min) & (m < m_max)
+
+
 def gain_schedule(t: Tensor, k_norm: Tensor, k_init: Tensor, t_init: Tensor) -> Tensor:
     """Paper Eq. 8: ``K = K_norm + (t_init - t)/t_init (K_init - K_norm)`` for ``t <= t_init``,
     else ``K_norm``. Shapes: ``t`` (B, N) seconds since the first sample, gains (B,) 1/s."""

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from .. import so3
 from ..conventions import GRAVITY
-from .common import converter_like, elapsed, flatten_batch, gain_schedule, normalize, unflatten
+from .common import converter_like, elapsed, field_gates, flatten_batch, gain_schedule, normalize, unflatten
 
 
 def ecf(
@@ -75,18 +75,13 @@ def ecf(
     n = gyro.shape[1]
 
     # Everything that depends on the measurements only is computed once, vectorised.
-    a_norm = torch.linalg.vector_norm(accel, dim=-1)
     a_hat = normalize(accel)
-    acc_ok = (a_norm - gravity).abs() < a_min[:, None]  # Eq. 7, first test
+    acc_ok, mag_ok = field_gates(accel, mag, a_min[:, None], m_min[:, None], m_max[:, None], gravity)  # Eq. 7
     gain = gain_schedule(elapsed(dt), k_norm, k_init, t_init)  # Eq. 8
     w_acc = gain * acc_ok
     if mag is not None:
-        m_norm = torch.linalg.vector_norm(mag, dim=-1)
-        mag_ok = acc_ok & (m_norm > m_min[:, None]) & (m_norm < m_max[:, None])
         east_b = normalize(torch.cross(mag, accel, dim=-1))  # Eq. 6 in ENU: (m x a)/|m x a|
         w_mag = gain * mag_ok
-    else:
-        mag_ok = torch.zeros_like(acc_ok)
 
     r = so3.quat_to_matrix(q0)
     out = [r]

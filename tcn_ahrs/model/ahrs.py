@@ -39,7 +39,8 @@ MODEL_KEYS = {
     "loop", "trust", "closed_loop",
 }
 LOOPS = ("open", "closed")
-CLOSED_LOOP_KEYS = {"acc_gain", "mag_gain", "bias_gain", "rest_time_constant", "rest_time", "rest_gyro", "rest_acc"}
+CLOSED_LOOP_KEYS = {"acc_gain", "mag_gain", "bias_gain", "rest_time_constant", "rest_time", "rest_gyro", "rest_acc",
+                    "acc_reject", "mag_min", "mag_max"}
 TCN_KEYS = {"channels", "kernel_size", "dilations", "dropout"}
 
 

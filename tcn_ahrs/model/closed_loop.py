@@ -47,6 +47,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import so3
+from ..conventions import GRAVITY
+from ..filters.common import field_gates
 from .ecf import _unit
 
 
@@ -138,6 +140,12 @@ class ClosedLoopFilter(nn.Module):
         bias_gain: k_bias, 1/s² (default 0.003).
         rest_time_constant: T_rest, s, of the bias update at rest (default 2).
         rest_time, rest_gyro, rest_acc: the rest detector (s, rad/s, m/s²; :func:`rest_detector`).
+        acc_reject: m/s²; samples with ``| |a| − g | ≥ acc_reject`` (raw) neither correct the
+            attitude nor, through the measured east, the heading (the ECF's Eq. 7 test); 0: off.
+        mag_min, mag_max: µT; the magnetometer corrects heading only while the raw field norm lies
+            in this range (Eq. 7; the Earth's field is 22–67 µT, a norm outside it is a local
+            disturbance — a steel trolley reads 15 µT); 0, 0: off.
+    The gates multiply the networks' trust: they are the classical prior, the trust learns the rest.
     The rest window in samples is fixed at training time from the training rate
     (:meth:`set_rate`, saved as the buffer ``rest_window``; 0: from the data's median step),
     like the networks' time scale, so evaluation and the exports use the same window.
@@ -145,8 +153,13 @@ class ClosedLoopFilter(nn.Module):
 
     def __init__(self, use_acc: bool = True, use_mag: bool = True, acc_gain: float = 0.3,
                  mag_gain: float = 0.1, bias_gain: float = 0.003, rest_time_constant: float = 2.0,
-                 rest_time: float = 1.5, rest_gyro: float = math.radians(2.0), rest_acc: float = 0.5):
+                 rest_time: float = 1.5, rest_gyro: float = math.radians(2.0), rest_acc: float = 0.5,
+                 acc_reject: float = 0.0, mag_min: float = 0.0, mag_max: float = 0.0):
         super().__init__()
+        self.acc_reject = float(acc_reject)
+        self.gravity = float(GRAVITY)
+        self.mag_min = float(mag_min)
+        self.mag_max = float(mag_max)
         self.rest_time = float(rest_time)
         self.rest_gyro = float(rest_gyro)
         self.rest_acc = float(rest_acc)
@@ -173,6 +186,20 @@ class ClosedLoopFilter(nn.Module):
         """:func:`rest_detector` on raw readings (B, N, 3) with this filter's settings."""
         return rest_detector(gyro, acc, self.window(dt), self.rest_gyro, self.rest_acc)
 
+    def gates(self, acc: Tensor, mag: Optional[Tensor]) -> Tuple[Tensor, Tensor]:
+        """Eq. 7 gates (B, N) in {0., 1.} from raw acc, mag (B, N, 3): accelerometer near 1 g,
+        field norm in [mag_min, mag_max] (and the accelerometer gate: the measured east uses a)."""
+        one = torch.ones_like(acc[..., 0])
+        if self.acc_reject <= 0.0 and self.mag_max <= 0.0:
+            return one, one
+        a_min = math.inf if self.acc_reject <= 0.0 else self.acc_reject
+        m_max = math.inf if self.mag_max <= 0.0 else self.mag_max
+        m_min = self.mag_min if self.mag_max > 0.0 else -1.0
+        acc_ok, mag_ok = field_gates(acc, mag, one * a_min, one * m_min, one * m_max, self.gravity)
+        acc_ok = acc_ok.to(acc.dtype)
+        mag_ok = mag_ok.to(acc.dtype)
+        return acc_ok, mag_ok
+
     @torch.jit.unused
     def gains(self) -> Dict[str, float]:
         return {"acc_gain": float(self.log_acc_gain.exp()), "mag_gain": float(self.log_mag_gain.exp()),
@@ -187,11 +214,15 @@ class ClosedLoopFilter(nn.Module):
         plus ``rot``, ``gyro_bias``, ``correction`` (B, N - context, ...), ``east_ref``,
         ``rest``, ``acc_trust``, ``mag_trust`` (B, N)."""
         rest = self.rest(imu[..., 0:3], imu[..., 3:6], dt)
-        acc_trust = 2.0 * torch.sigmoid(cal["acc_trust_logit"])
+        raw_mag: Optional[Tensor] = None
+        if imu.shape[-1] >= 9:
+            raw_mag = imu[..., 6:9]
+        acc_ok, mag_ok = self.gates(imu[..., 3:6], raw_mag)
+        acc_trust = 2.0 * torch.sigmoid(cal["acc_trust_logit"]) * acc_ok
         mag_trust = torch.ones_like(acc_trust)
         mag: Optional[Tensor] = None
         if "mag" in cal:
-            mag_trust = 2.0 * torch.sigmoid(cal["mag_trust_logit"])
+            mag_trust = 2.0 * torch.sigmoid(cal["mag_trust_logit"]) * mag_ok
             mag = cal["mag"][:, context:].to(dtype)
         ref: Optional[Tensor] = None
         if east_ref is not None:
