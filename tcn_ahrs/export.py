@@ -23,6 +23,10 @@ the string returned by the module's ``metadata()`` method):
   step over a whole sequence in TorchScript. State: one ring buffer per convolution layer
   (``dilation * (kernel - 1)`` past inputs, zeros after ``reset`` = the batch model's causal
   zero padding), the ECF's pre-integrated attitude(s) C̃ (Eq. 25) and the integrated attitude.
+* Input checks (every module): wrong shapes, a NaN/inf reading, or a time step after the first
+  that is not finite and > 0 raise ``ValueError`` naming the input and the index; a streaming
+  step checks before it changes any state, so after the error the module continues as if that
+  sample had not been given (``reset(q0)`` also starts afresh).
 * ``m.metadata()`` (and the ``metadata.json`` extra file) is JSON with: axes, channel names,
   variant, model config, the rate the model was trained at (``rate_hz``, null when the
   checkpoint does not record it), units, frames, quaternion order, receptive field, the input
@@ -285,6 +289,22 @@ class _Inputs(nn.Module):
                              + (", mag uT" if self.axes == 9 else "") + "], got " + str(list(imu.shape)))
         if imu.size(0) < 1:
             raise ValueError("imu: expected at least one sample")
+        self._check_finite(imu, "imu")
+
+    def _check_finite(self, x: Tensor, what: str):
+        """Raise on NaN/inf, naming the first bad entry (one NaN would otherwise spread through
+        the networks' receptive field and the filter state into every later output)."""
+        bad = torch.logical_not(torch.isfinite(x))
+        if bool(bad.any()):
+            where: List[int] = torch.nonzero(bad)[0].tolist()
+            raise ValueError(what + ": non-finite value at index " + str(where)
+                             + " (expected finite readings: drop or interpolate that sample)")
+
+    def _check_step(self, dt: float, first: bool):
+        """dt of a step after the first must be finite and > 0 s (the first is not used)."""
+        if not first and not (dt > 0.0 and math.isfinite(dt)):
+            raise ValueError("dt: expected a finite time step > 0 s since the previous sample, got "
+                             + str(dt))
 
     def _q0(self, q0: Tensor) -> Tensor:
         if q0.numel() != 4:
@@ -302,8 +322,16 @@ class _Inputs(nn.Module):
                 return d.expand(n)
             if d.dim() != 1 or d.size(0) != n:
                 raise ValueError("dt: expected a float or shape (" + str(n) + ",), got " + str(list(d.shape)))
-            return d
-        return torch.full([n], float(dt), dtype=dtype)
+        else:
+            d = torch.full([n], float(dt), dtype=dtype)
+        # dt[0] is not used (Eq. 3); every later step must be a finite positive time
+        later = d[1:]
+        bad = torch.logical_not(torch.isfinite(later) & (later > 0))
+        if bool(bad.any()):
+            k = int(torch.nonzero(bad)[0, 0]) + 1
+            raise ValueError("dt: expected finite time steps > 0 s after sample 0, got " + str(float(d[k]))
+                             + " at index " + str(k))
+        return d
 
 
 class BatchAHRS(_Inputs):
@@ -634,6 +662,10 @@ class StreamingAHRS(BatchAHRS):
         if sample.dim() != 1 or sample.size(0) != self.axes:
             raise ValueError("sample: expected shape (" + str(self.axes) + ",), got " + str(list(sample.shape)))
         dtf = float(dt.item()) if isinstance(dt, Tensor) else float(dt)
+        # checked before any state changes: after an error the module goes on as if the sample
+        # had not been given (or reset() starts afresh)
+        self._check_finite(sample, "sample")
+        self._check_step(dtf, self.t == 0)
         x = sample.to(torch.float64)
         if self.groups > 0:
             # M y − (W_o h + b_o) (Eqs. 12-14): two fused multiply-adds in float64
@@ -779,6 +811,8 @@ class ClosedLoopStreaming(ClosedLoopBatch):
     def step(self, sample: Tensor, dt: float) -> Tuple[Tensor, Tensor]:
         if sample.numel() != self.axes:
             raise ValueError("sample: expected " + str(self.axes) + " values, got " + str(sample.numel()))
+        self._check_finite(sample, "sample")  # before any state changes (see StreamingAHRS.step)
+        self._check_step(dt, self.count == 0)
         self.buf = torch.cat([self.buf[1:], sample.reshape(1, self.axes).to(torch.float32)], 0)
         self.buf_dt = torch.cat([self.buf_dt[1:], torch.full([1], dt, dtype=torch.float32)], 0)
         self.count += 1

@@ -1,0 +1,68 @@
+"""Bad input gets a clear error, never a silently wrong result (one test per case)."""
+import math
+
+import pytest
+import torch
+
+from tcn_ahrs.export import export_batch, export_streaming
+from tcn_ahrs.model.ahrs import LearnedAHRS
+
+N = 120
+RATE = 100.0
+
+
+def _exported(tmp_path, loop: str):
+    torch.manual_seed(0)
+    m = LearnedAHRS(axes=6, loop=loop, mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]}).eval()
+    if m.closed is not None:
+        m.closed.set_rate(RATE)
+    export_batch(m, tmp_path / f"{loop}.pt", {"rate_hz": RATE})
+    export_streaming(m, tmp_path / f"{loop}_s.pt", {"rate_hz": RATE})
+    return torch.jit.load(str(tmp_path / f"{loop}.pt")), torch.jit.load(str(tmp_path / f"{loop}_s.pt"))
+
+
+def _imu():
+    g = torch.Generator().manual_seed(1)
+    return torch.cat([0.2 * torch.randn(N, 3, generator=g),
+                      torch.tensor([0.0, 0.0, 9.81]) + 0.2 * torch.randn(N, 3, generator=g)], 1)
+
+
+Q0 = torch.tensor([1.0, 0.0, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("loop", ["closed", "open"])
+def test_exported_modules_refuse_non_finite_readings_and_bad_time_steps(tmp_path, loop):
+    batch, stream = _exported(tmp_path, loop)
+    imu = _imu()
+    imu[50, 4] = math.nan
+    for run in (batch, stream.run):
+        with pytest.raises(Exception, match=r"imu: non-finite value at index \[50, 4\]"):
+            run(imu, 1.0 / RATE, Q0)
+    dt = torch.full((N,), 1.0 / RATE)
+    dt[0] = 0.0  # dt[0] is not used: accepted
+    batch(_imu(), dt, Q0)
+    for bad in (0.0, -0.01, math.nan):
+        dt2 = dt.clone()
+        dt2[30] = bad
+        with pytest.raises(Exception, match=r"dt: expected finite time steps > 0 s .* at index 30"):
+            batch(_imu(), dt2, Q0)
+
+
+@pytest.mark.parametrize("loop", ["closed", "open"])
+def test_streaming_step_error_leaves_the_state_as_if_the_sample_was_not_given(tmp_path, loop):
+    _, stream = _exported(tmp_path, loop)
+    imu = _imu()
+    stream.reset(Q0)
+    ref = [stream.step(imu[k], 1.0 / RATE)[0] for k in range(N)]
+    stream.reset(Q0)
+    out = []
+    for k in range(N):
+        if k == 40:
+            bad = imu[k].clone()
+            bad[1] = math.inf
+            with pytest.raises(Exception, match=r"sample: non-finite value at index \[1\]"):
+                stream.step(bad, 1.0 / RATE)
+            with pytest.raises(Exception, match="dt: expected a finite time step > 0 s"):
+                stream.step(imu[k], -1.0)
+        out.append(stream.step(imu[k], 1.0 / RATE)[0])
+    torch.testing.assert_close(torch.stack(out), torch.stack(ref), atol=0, rtol=0)
