@@ -273,9 +273,33 @@ def find_resume_checkpoint(run_dir: Path) -> Path:
     return cands[-1]
 
 
+def _appending_csv_logger(run_dir: Path):
+    """Lightning's CSVLogger, except that an existing ``logs/metrics.csv`` is continued, not
+    deleted: a resumed run keeps the history of the epochs before the kill."""
+    import csv
+
+    from pytorch_lightning.loggers import CSVLogger
+    from pytorch_lightning.loggers.csv_logs import ExperimentWriter
+
+    class _Writer(ExperimentWriter):
+        def _check_log_dir_exists(self) -> None:
+            if self._fs.isfile(self.metrics_file_path):
+                with self._fs.open(self.metrics_file_path, "r", newline="") as fh:
+                    self.metrics_keys = list(next(csv.reader(fh), []))
+
+    class _Logger(CSVLogger):
+        @property
+        def experiment(self):
+            if self._experiment is None:
+                self._fs.makedirs(self.root_dir, exist_ok=True)
+                self._experiment = _Writer(log_dir=self.log_dir)
+            return self._experiment
+
+    return _Logger(str(run_dir), name="logs", version="")
+
+
 def build_trainer(cfg, run_dir: Path, monitor: str, callbacks_extra=()) -> pl.Trainer:
     from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
-    from pytorch_lightning.loggers import CSVLogger
 
     ckpt_cb = ModelCheckpoint(dirpath=str(run_dir / "checkpoints"), filename="best", monitor=monitor,
                               mode="min", save_top_k=1, save_last=False, auto_insert_metric_name=False,
@@ -285,7 +309,7 @@ def build_trainer(cfg, run_dir: Path, monitor: str, callbacks_extra=()) -> pl.Tr
     # epoch; a monitor-less top-1 checkpoint named "last" is rewritten every epoch.)
     last_cb = ModelCheckpoint(dirpath=str(run_dir / "checkpoints"), filename="last", monitor=None,
                               save_top_k=1, every_n_epochs=1, enable_version_counter=False)
-    loggers = [CSVLogger(str(run_dir), name="logs", version="")]
+    loggers = [_appending_csv_logger(run_dir)]
     try:
         from pytorch_lightning.loggers import TensorBoardLogger
         import tensorboard  # noqa: F401

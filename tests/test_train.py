@@ -53,9 +53,19 @@ def test_tiny_run_writes_checkpoints_config_and_resumes(tmp_path, seqs):
     last = load_checkpoint(ck / "last.ckpt")
     assert last["epoch"] == 1 and last["tcn_ahrs"]["layout"]["axes"] == 9
     assert not list(ck.glob("*.tmp"))  # no leftovers of the atomic writes
-    # resume with one override: continues from last.ckpt to epoch 3
+    # resume with one override: continues from last.ckpt to epoch 3, and keeps the log history
+    import csv
+
+    def rows():
+        with open(run / "logs" / "metrics.csv", newline="") as fh:
+            return list(csv.DictReader(fh))
+
+    before = rows()
     _train(run, seqs, ["resume=true", "train.epochs=3"])
     assert load_checkpoint(ck / "last.ckpt")["epoch"] == 2
+    after = rows()
+    assert sorted({int(r["epoch"]) for r in after if r.get("epoch")}) == [0, 1, 2]
+    assert len(after) > len(before)
     # explicit ckpt_path into a fresh run dir
     _train(tmp_path / "run2", seqs, [f"ckpt_path={ck / 'last.ckpt'}", "train.epochs=4"])
     assert load_checkpoint(tmp_path / "run2" / "checkpoints" / "last.ckpt")["epoch"] == 3
