@@ -25,6 +25,7 @@ from .checkpoint import AtomicCheckpointIO, CheckpointError, check_layout, layou
 from .data import AHRSDataModule, augment
 from .losses import attitude_loss, increment_loss
 from .model.ahrs import LearnedAHRS
+from .validate import check_number
 
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
@@ -241,6 +242,23 @@ def check_keys(section: Mapping, allowed: set, where: str) -> None:
         raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed)}")
 
 
+# (type, lower bound, lower bound included, upper bound exclusive) of the numeric train.* keys
+TRAIN_VALUES = {"window": (int, 2, True, None), "stride": (int, 1, True, None),
+                "batch_size": (int, 1, True, None), "epochs": (int, 1, True, None),
+                "lr": (float, 0.0, False, None), "weight_decay": (float, 0.0, True, None),
+                "huber_delta": (float, 0.0, False, None), "stream_chunks": (int, 1, True, None),
+                "attitude_delta": (float, 0.0, False, None), "ema_decay": (float, 0.0, True, 1.0)}
+
+
+def check_train_values(train: Mapping) -> None:
+    """Every numeric ``train.*`` value in its range, and the noise levels >= 0 (key named)."""
+    for k, (kind, low, low_ok, high) in TRAIN_VALUES.items():
+        if train.get(k) is not None:
+            check_number(train.get(k), f"train.{k}", kind, low, low_ok, high)
+    for k, v in (train.get("noise") or {}).items():
+        check_number(v, f"train.noise.{k}", float, 0.0)
+
+
 def model_axes(cfg) -> int:
     """Model input axes: ``model.axes`` (default: ``data.axes``); a 9-axis model on 6-axis data is an error."""
     data_axes = int(cfg.data.get("axes", 9))
@@ -341,6 +359,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
 
     ``train_seqs``/``val_seqs``/``test_seqs`` replace the data config's splits (tests)."""
     check_keys(cfg.train, TRAIN_KEYS, "train")
+    check_train_values(cfg.train)
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     pl.seed_everything(int(cfg.seed), workers=True)

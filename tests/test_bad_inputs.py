@@ -66,3 +66,28 @@ def test_streaming_step_error_leaves_the_state_as_if_the_sample_was_not_given(tm
                 stream.step(imu[k], -1.0)
         out.append(stream.step(imu[k], 1.0 / RATE)[0])
     torch.testing.assert_close(torch.stack(out), torch.stack(ref), atol=0, rtol=0)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("lr", "abc", r"train.lr: expected a number > 0, got 'abc'"),
+    ("epochs", -1, r"train.epochs: expected an integer >= 1, got -1"),
+    ("epochs", 0, r"train.epochs: expected an integer >= 1, got 0"),
+    ("ema_decay", 1.0, r"train.ema_decay: expected a number >= 0 and < 1, got 1.0"),
+    ("batch_size", 2.5, r"train.batch_size: expected an integer >= 1, got 2.5"),
+])
+def test_numeric_train_values_are_checked_with_the_key_named(key, value, message):
+    from tcn_ahrs.train import check_train_values
+
+    check_train_values({"lr": 0.001, "epochs": 3, "noise": {"gyro": 0.0}})  # valid
+    with pytest.raises(ValueError, match=message):
+        check_train_values({key: value})
+    with pytest.raises(ValueError, match=r"train.noise.acc: expected a number >= 0, got -0.1"):
+        check_train_values({"noise": {"acc": -0.1}})
+
+
+def test_reanchor_must_be_a_positive_sample_count():
+    from tcn_ahrs.estimators.learned import LearnedEstimator
+
+    model = LearnedAHRS(axes=6, mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]})
+    with pytest.raises(ValueError, match=r"reanchor: expected an integer >= 1, got -5"):
+        LearnedEstimator(model, reanchor=-5)

@@ -11,6 +11,7 @@ from .. import so3
 from ..checkpoint import CheckpointError, model_from_checkpoint
 from ..model.ahrs import LearnedAHRS
 from ..sequence import ImuSequence
+from ..validate import check_number
 from .base import EstimatorOutput
 
 
@@ -53,7 +54,7 @@ class LearnedEstimator:
         self.name = name
         # restart the open-loop ECF from the estimate every `reanchor` samples
         # (LearnedAHRS.run_sequence); None = the paper's single pass
-        self.reanchor = None if reanchor is None else int(reanchor)
+        self.reanchor = None if reanchor is None else check_number(reanchor, "reanchor", int, 1)
 
     @property
     def axes(self) -> int:

@@ -1,0 +1,26 @@
+"""Checks of user-given values: one message format (the key, what was expected, what was given)."""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+
+def check_number(value: Any, key: str, kind=float, low: Optional[float] = None, low_ok: bool = True,
+                 high: Optional[float] = None):
+    """``value`` as ``kind`` within [low (or > low), high); a ``ValueError`` naming ``key`` otherwise."""
+    rng = []
+    if low is not None:
+        rng.append(f"{'>=' if low_ok else '>'} {low:g}")
+    if high is not None:
+        rng.append(f"< {high:g}")
+    want = f"{'an integer' if kind is int else 'a number'}{' ' + ' and '.join(rng) if rng else ''}"
+    try:
+        if isinstance(value, bool) or value is None:
+            raise TypeError
+        v = kind(value)
+        if kind is int and float(value) != v:
+            raise TypeError
+    except (TypeError, ValueError):
+        raise ValueError(f"{key}: expected {want}, got {value!r}") from None
+    if (low is not None and (v < low or (v == low and not low_ok))) or (high is not None and v >= high):
+        raise ValueError(f"{key}: expected {want}, got {value!r}")
+    return v
