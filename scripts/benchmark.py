@@ -18,6 +18,8 @@ from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tcn_ahrs.cli import user_errors  # noqa: E402
+
 MODES = ("accuracy", "speed")
 
 
@@ -31,6 +33,7 @@ def _mode_from_argv(argv) -> None:
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="benchmark")
+@user_errors
 def main(cfg: DictConfig) -> None:
     mode = str(cfg.mode)
     if mode == "accuracy":

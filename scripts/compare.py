@@ -17,8 +17,11 @@ from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tcn_ahrs.cli import user_errors  # noqa: E402
+
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="compare")
+@user_errors
 def main(cfg: DictConfig) -> None:
     from tcn_ahrs.compare import compare_main
 

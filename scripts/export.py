@@ -18,25 +18,24 @@ from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tcn_ahrs.cli import user_errors  # noqa: E402
+
 KEYS = {"ckpt", "out", "mode", "rate", "net_dtype"}
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="export")
+@user_errors
 def main(cfg: DictConfig) -> None:
-    from tcn_ahrs.checkpoint import CheckpointError
     from tcn_ahrs.export import export_checkpoint, read_metadata
 
     unknown = set(cfg) - KEYS
     if unknown:
-        sys.exit(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")
+        raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")
     if not cfg.ckpt or not cfg.out:
-        sys.exit("export: pass ckpt=PATH (a checkpoint written by scripts/train.py) and out=FILE.pt")
-    try:
-        written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
-                                    rate_hz=None if cfg.rate is None else float(cfg.rate),
-                                    net_dtype=str(cfg.net_dtype))
-    except (CheckpointError, ValueError) as e:
-        sys.exit(f"export: {e}")
+        raise ValueError("export: pass ckpt=PATH (a checkpoint written by scripts/train.py) and out=FILE.pt")
+    written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
+                                rate_hz=None if cfg.rate is None else float(cfg.rate),
+                                net_dtype=str(cfg.net_dtype))
     for mode, path in written.items():
         md = read_metadata(path)
         print(f"{mode}: {path}  ({md['variant']}, {md['axes']}-axis, preintegration {md['preintegration']}, "

@@ -16,10 +16,13 @@ from omegaconf import DictConfig, open_dict
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from tcn_ahrs.cli import user_errors  # noqa: E402
+
 from tcn_ahrs.datasets import format_summary_table, load_split, summarize  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="inspect_data")
+@user_errors
 def main(cfg: DictConfig) -> None:
     data = cfg.data
     if data.get("root"):

@@ -50,10 +50,19 @@ def load_checkpoint(path, map_location="cpu") -> Dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint file not found")
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(4)
+    if head[:2] != b"PK":  # torch.save writes a zip archive
+        what = "an empty file" if size == 0 else f"a {size}-byte file starting with {head!r}"
+        raise CheckpointError(f"{path}: not a checkpoint ({what}; expected a .ckpt written by "
+                              "scripts/train.py, a zip archive from torch.save)")
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as e:  # pickle errors, truncated files, disallowed types
-        raise CheckpointError(f"{path}: cannot load checkpoint safely (weights_only=True): {e}") from e
+    except Exception as e:  # truncated archives, disallowed types
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{path}: cannot load this checkpoint safely (torch.load with "
+                              f"weights_only=True: {first}); is it complete and written by scripts/train.py?") from e
 
 
 class AtomicCheckpointIO(TorchCheckpointIO):

@@ -91,3 +91,34 @@ def test_reanchor_must_be_a_positive_sample_count():
     model = LearnedAHRS(axes=6, mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]})
     with pytest.raises(ValueError, match=r"reanchor: expected an integer >= 1, got -5"):
         LearnedEstimator(model, reanchor=-5)
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"", r"not a checkpoint \(an empty file"),
+    (b"hello world\n", r"not a checkpoint \(a 12-byte file starting with b'hell'"),
+    (b"PK\x03\x04garbage", r"cannot load this checkpoint safely"),
+])
+def test_a_file_that_is_no_checkpoint_gets_a_one_line_reason(tmp_path, content, message):
+    from tcn_ahrs.checkpoint import CheckpointError, load_checkpoint
+
+    p = tmp_path / "model.ckpt"
+    p.write_bytes(content)
+    with pytest.raises(CheckpointError, match=message) as e:
+        load_checkpoint(p)
+    assert "\n" not in str(e.value)
+
+
+def test_scripts_print_one_line_and_exit_2_on_a_user_error(tmp_path):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "train.py"
+    env = dict(os.environ)
+    env.pop("HYDRA_FULL_ERROR", None)
+    r = subprocess.run([sys.executable, str(script), "train.epochs=0", f"run_dir={tmp_path}"],
+                       capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+    assert r.returncode == 2
+    assert r.stderr.startswith("error: train.epochs: expected an integer >= 1, got 0")
+    assert "Traceback" not in r.stderr
