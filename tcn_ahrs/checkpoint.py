@@ -53,10 +53,10 @@ def load_checkpoint(path, map_location="cpu") -> Dict[str, Any]:
     size = path.stat().st_size
     with open(path, "rb") as fh:
         head = fh.read(4)
-    if head[:2] != b"PK":  # torch.save writes a zip archive
+    if head[:2] != b"PK" and head[:1] != b"\x80":  # torch.save: a zip archive (or a legacy pickle)
         what = "an empty file" if size == 0 else f"a {size}-byte file starting with {head!r}"
         raise CheckpointError(f"{path}: not a checkpoint ({what}; expected a .ckpt written by "
-                              "scripts/train.py, a zip archive from torch.save)")
+                              "scripts/train.py, a zip archive or pickle from torch.save)")
     try:
         return torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # truncated archives, disallowed types
