@@ -165,7 +165,60 @@ class ImuSequence:
             if self.score_mask.shape != (n,):
                 self._fail("score_mask", f"expected shape ({n},), got {self.score_mask.shape}")
         if self.check_units:
+            self._check_time()
             self._check_units()
+            self._check_ground_truth()
+
+    def _check_time(self) -> None:
+        """Timestamps in seconds, no gap the attitude would be integrated across."""
+        d = np.diff(self.time)
+        step = float(np.median(d))
+        if step > 0.5:
+            self._fail("time", f"expected seconds; the median step is {step:.4g} (a {1.0 / step:.3g} Hz IMU): "
+                               "timestamps in milliseconds? declare time_unit: ms (or convert to s)")
+        if step < 1e-5:
+            self._fail("time", f"expected seconds; the median step is {step:.3g} (a {1.0 / step:.3g} Hz IMU): "
+                               "timestamps in microseconds or nanoseconds? declare time_unit: us / ns")
+        limit = max(MAX_GAP_STEPS * step, MAX_GAP_S)
+        if float(d.max()) > limit:
+            i = int(np.argmax(d))
+            self._fail("time", f"a gap of {d[i]:.4g} s between samples {i} and {i + 1} (t = {self.time[i]:.6g} -> "
+                               f"{self.time[i + 1]:.6g} s; median step {step:.3g} s): the attitude cannot be "
+                               f"integrated across missing data (limit {limit:.3g} s); split the recording there")
+
+    def _check_ground_truth(self) -> None:
+        """Where ground truth exists, the gyro must agree with the rate differentiated from it and
+        the specific force must point up in its frame: catches a wrong quaternion order, a gyro
+        in deg/s, a flipped accelerometer and a ground-truth frame that is not z-up."""
+        if self.quat is None or int(self.quat_valid.sum()) < 10:
+            return
+        agree = ground_truth_agreement(self)
+        if agree.get("angle_deg") is not None and agree["angle_deg"] > 45.0:
+            alt = agree.get("angle_deg_xyzw")
+            if alt is not None and alt < 30.0:
+                self._fail("quat", f"the gyro disagrees with the rate differentiated from the ground truth "
+                                   f"(median angle {agree['angle_deg']:.0f} deg) but agrees when the quaternions "
+                                   f"are read as x,y,z,w ({alt:.0f} deg): the values are in x,y,z,w order (HDF5: declare "
+                                   "quat_order: xyzw; CSV: name the columns by what they hold)")
+            self._fail("quat", f"the gyro disagrees with the rate differentiated from the ground truth (median "
+                               f"angle {agree['angle_deg']:.0f} deg over {agree['moving']} moving samples; "
+                               "expected < 45): the ground truth's body frame is rotated against the IMU's, "
+                               "or the quaternions are not nav_from_body (w,x,y,z)")
+        scale = agree.get("scale")
+        if scale is not None and not 0.5 < scale < 2.0:
+            hint = (": is the gyro in deg/s? declare gyr_unit: deg/s" if 0.005 < scale < 0.05
+                    else ": check the gyro's and the timestamps' units")
+            self._fail("gyro", f"expected rad/s; the ground truth turns {scale:.3g} times as fast as the gyro "
+                               f"says (median over {agree['moving']} moving samples){hint}")
+        up = agree["up"]
+        if up[2] < 0.5:
+            if up[2] < -0.5:
+                why = ("the accelerometer reads gravity (down) instead of specific force (up)? declare "
+                       "acc_sign: gravity; or the ground truth is in a z-down frame: declare nav_frame: NED")
+            else:
+                why = "the ground truth's frame is not z-up: declare its nav_frame"
+            self._fail("accel", "expected specific force pointing up (+z, ENU) in the ground-truth frame; its "
+                                f"mean direction there is [{up[0]:.2f}, {up[1]:.2f}, {up[2]:.2f}]: {why}")
 
     def _array(self, name: str, a, shape) -> np.ndarray:
         try:
@@ -208,6 +261,60 @@ class ImuSequence:
             if mag_norm > 5000.0:
                 self._fail("mag", f"expected microtesla (Earth ~25-65 uT), got median norm {mag_norm:.3g}: "
                                   "is it in nT? convert with conventions.nt_to_ut")
+
+
+MAX_GAP_STEPS = 20.0  # a time step longer than this many median steps ...
+MAX_GAP_S = 0.2      # ... and than this many seconds is a gap in the data, not a late sample
+
+
+def ground_truth_agreement(seq: "ImuSequence", lag_s: float = 0.05, min_rate: float = 0.2) -> dict:
+    """How the IMU agrees with the ground truth of ``seq`` (shown by ``inspect_data``, checked
+    when a recording is built):
+
+    * ``angle_deg``: median angle between the mean gyro over ``lag_s`` and the body rate
+      differentiated from the ground truth over the same interval, on samples where both turn
+      faster than ``min_rate`` rad/s (``moving`` of them); a few degrees when frames agree;
+      ``angle_deg_xyzw`` the same with the quaternions read as x,y,z,w;
+    * ``scale``: median |ground-truth rate| / |gyro rate| (1 in rad/s; 0.017 for deg/s);
+    * ``up``: mean direction (3,) of the specific force in the ground-truth frame (+z, ENU).
+    ``angle_deg``/``scale`` are None when fewer than 30 samples move."""
+    import torch
+
+    from . import so3
+
+    valid = seq.quat_valid
+    t = seq.time
+    lag = max(1, int(round(lag_s * seq.rate)))
+    ok = valid[lag:] & valid[:-lag]
+    q = torch.as_tensor(np.where(valid[:, None], seq.quat, 0.0), dtype=torch.float64)
+    a = torch.as_tensor(seq.accel[valid], dtype=torch.float64)
+    f = so3.quat_rotate(q[torch.as_tensor(valid)], a / a.norm(dim=1, keepdim=True).clamp_min(1e-9))
+    out = {"up": f.mean(0).numpy(), "angle_deg": None, "angle_deg_xyzw": None, "scale": None, "moving": 0}
+    if ok.sum() < 30:
+        return out
+    okt = torch.as_tensor(ok)
+    span = torch.as_tensor(t[lag:] - t[:-lag])[okt][:, None]
+    # mean gyro over (t_k, t_{k+lag}]: sample k moves the attitude from k-1 to k
+    c = np.cumsum(np.vstack([np.zeros((1, 3)), seq.gyro[1:] * np.diff(t)[:, None]]), 0)
+    w_gyro = torch.as_tensor((c[lag:] - c[:-lag]))[okt] / span
+
+    def gt_rate(qq):
+        return so3.quat_log(so3.quat_mul(so3.quat_conj(qq[:-lag][okt]), qq[lag:][okt])) / span
+
+    w_gt = gt_rate(q)
+    moving = (w_gyro.norm(dim=1) > min_rate) & (w_gt.norm(dim=1) > min_rate)
+    out["moving"] = int(moving.sum())
+    if out["moving"] < 30:
+        return out
+
+    def angle(w):
+        cos = torch.nn.functional.cosine_similarity(w[moving], w_gyro[moving], dim=1)
+        return float(torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0))).median())
+
+    out["angle_deg"] = angle(w_gt)
+    out["angle_deg_xyzw"] = angle(gt_rate(q[:, [3, 0, 1, 2]]))
+    out["scale"] = float((w_gt[moving].norm(dim=1) / w_gyro[moving].norm(dim=1)).median())
+    return out
 
 
 def _rest_samples(accel: np.ndarray, rate: float, window_s: float = 0.5, tol: float = 0.05) -> np.ndarray:

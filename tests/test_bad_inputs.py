@@ -122,3 +122,106 @@ def test_scripts_print_one_line_and_exit_2_on_a_user_error(tmp_path):
     assert r.returncode == 2
     assert r.stderr.startswith("error: train.epochs: expected an integer >= 1, got 0")
     assert "Traceback" not in r.stderr
+
+
+# ------------------------------------------------------------ recordings (generic format)
+HEADER = "t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z,quat_w,quat_x,quat_y,quat_z"
+
+
+def _recording(tmp_path, edit=None, sidecar=None, seconds=20.0):
+    import numpy as np
+
+    from tcn_ahrs.datasets.simulate import simulate
+
+    seq = simulate("slow_rotation", seconds, 100.0, seed=4)
+    cols = {"t": seq.time.copy(), "gyr": seq.gyro.copy(), "acc": seq.accel.copy(), "mag": seq.mag.copy(),
+            "quat": seq.quat.copy()}
+    if edit is not None:
+        edit(cols)
+    path = tmp_path / "rec.csv"
+    np.savetxt(path, np.column_stack([cols["t"], cols["gyr"], cols["acc"], cols["mag"], cols["quat"]]),
+               delimiter=",", header=HEADER, comments="", fmt="%.10g")
+    if sidecar:
+        (tmp_path / "rec.yaml").write_text(sidecar)
+    return path
+
+
+def _load(path):
+    from tcn_ahrs.datasets.generic import load_file
+
+    return load_file(path)
+
+
+def _moving_part_in_degrees(c):
+    import numpy as np
+
+    c["gyr"] = np.degrees(c["gyr"])
+
+
+def _gravity_not_specific_force(c):
+    c["acc"] = -c["acc"]
+
+
+def _xyzw(c):
+    c["quat"] = c["quat"][:, [1, 2, 3, 0]]
+
+
+def _ten_second_gap(c):
+    c["t"][1000:] += 10.0
+
+
+def _milliseconds(c):
+    c["t"] = c["t"] * 1000.0
+
+
+def _x_up_ground_truth(c):
+    import numpy as np
+    import torch
+
+    from tcn_ahrs import so3
+
+    x_up = so3.matrix_to_quat(torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]], dtype=torch.float64))
+    c["quat"] = so3.quat_mul(x_up, torch.as_tensor(c["quat"])).numpy()
+    assert np.isfinite(c["quat"]).all()
+
+
+@pytest.mark.parametrize("edit, field, message", [
+    (_moving_part_in_degrees, "gyro", r"deg/s"),
+    (_gravity_not_specific_force, "accel", r"acc_sign: gravity"),
+    (_xyzw, "quat", r"in x,y,z,w order \(HDF5: declare quat_order: xyzw"),
+    (_ten_second_gap, "time", r"a gap of 10.01 s between samples 999 and 1000 .* split the recording there"),
+    (_milliseconds, "time", r"timestamps in milliseconds\? declare time_unit: ms"),
+    (_x_up_ground_truth, "accel", r"frame is not z-up: declare its nav_frame"),
+])
+def test_undeclared_units_frames_and_gaps_are_refused_with_the_fix(tmp_path, edit, field, message):
+    from tcn_ahrs.sequence import DataError
+
+    path = _recording(tmp_path, edit)
+    with pytest.raises(DataError, match=message) as e:
+        _load(path)
+    assert e.value.field_name == field and str(path) in str(e.value)
+
+
+@pytest.mark.parametrize("edit, sidecar", [
+    (_moving_part_in_degrees, "gyr_unit: deg/s\n"),
+    (_gravity_not_specific_force, "acc_sign: gravity\n"),
+    (_milliseconds, "time_unit: ms\n"),
+])
+def test_the_declaration_named_in_the_message_loads_the_recording_right(tmp_path, edit, sidecar):
+    import numpy as np
+
+    (tmp_path / "ref").mkdir()
+    ref = _load(_recording(tmp_path / "ref"))
+    seq = _load(_recording(tmp_path, edit, sidecar))
+    np.testing.assert_allclose(seq.gyro, ref.gyro, atol=1e-8)
+    np.testing.assert_allclose(seq.accel, ref.accel, atol=1e-7)
+    np.testing.assert_allclose(seq.time, ref.time, atol=1e-9)
+    np.testing.assert_allclose(np.abs((seq.quat * ref.quat).sum(1)), 1.0, atol=1e-8)
+
+
+def test_a_misspelt_sidecar_key_is_an_error_with_the_near_match(tmp_path):
+    from tcn_ahrs.sequence import DataError
+
+    path = _recording(tmp_path, sidecar="gyro_unit: deg/s\n")
+    with pytest.raises(DataError, match=r"unknown declaration \(did you mean 'gyr_unit'\?\)"):
+        _load(path)

@@ -133,6 +133,8 @@ def test_summary_and_gaps(generic_root):
     assert r["gaps"] == 1 and r["axes"] == 9 and r["rate_hz"] == pytest.approx(100.0)
     assert r["gt_valid_pct"] == pytest.approx(98.0) and not r["gt_missing_at_start"]
     assert r["rest_s"] > 5 and np.all(np.abs(r["rest_gyro_mean_dps"]) < 0.05)
+    # frames agree: the gyro follows the ground truth's rate and the specific force points up in it
+    assert r["gt_up"][2] > 0.95 and (r["gt_gyro_angle_deg"] is None or r["gt_gyro_angle_deg"] < 10)
     assert "c" in format_summary_table([r])
     # ground truth missing at the start
     q = s.quat.copy()

@@ -24,7 +24,7 @@ from typing import Any, Dict, List, Mapping, Optional
 
 import numpy as np
 
-from ..sequence import DataError, ImuSequence, rest_mask
+from ..sequence import DataError, ImuSequence, ground_truth_agreement, rest_mask
 
 REAL_DATASETS = ("broad", "euroc", "tumvi", "oxiod", "generic")
 DATASETS = REAL_DATASETS + ("simulated",)
@@ -211,13 +211,18 @@ def summarize(seq: ImuSequence, min_gap_s: float = 0.05) -> Dict[str, Any]:
     gaps > ``min_gap_s``), gaps_total_s, gt_missing_at_start (bool), gt_start_s (time of the first
     valid ground truth after the start), scored_pct (valid and in score_mask), rest_s (time at
     rest per :func:`~tcn_ahrs.sequence.rest_mask`), rest_gyro_mean_dps (3 floats, mean gyro at
-    rest in deg/s, i.e. the uncalibrated bias; NaN without rest).
+    rest in deg/s, i.e. the uncalibrated bias; NaN without rest); with ground truth (else None)
+    gt_gyro_angle_deg (median angle between the gyro and the rate differentiated from the
+    ground truth: a few degrees when frames agree) and gt_up (3 floats: the specific force's
+    mean direction in the ground-truth frame, [0, 0, 1] in ENU) — a wrong frame shows at a
+    glance (:func:`~tcn_ahrs.sequence.ground_truth_agreement`).
     """
     valid = seq.quat_valid if seq.quat_valid is not None else np.zeros(len(seq), dtype=bool)
     gaps = gt_gaps(seq, min_gap_s)
     rest = rest_mask(seq)
     rest_mean = np.degrees(seq.gyro[rest].mean(axis=0)) if rest.any() else np.full(3, np.nan)
     first = int(np.argmax(valid)) if valid.any() else len(seq) - 1
+    agree = ground_truth_agreement(seq) if valid.sum() >= 10 else {"angle_deg": None, "up": None}
     return {
         "name": seq.name,
         "samples": len(seq),
@@ -232,13 +237,16 @@ def summarize(seq: ImuSequence, min_gap_s: float = 0.05) -> Dict[str, Any]:
         "scored_pct": 100.0 * float(seq.scored().mean()),
         "rest_s": float(rest.sum() / seq.rate),
         "rest_gyro_mean_dps": [float(x) for x in rest_mean],
+        "gt_gyro_angle_deg": agree["angle_deg"],
+        "gt_up": None if agree["up"] is None else [float(x) for x in agree["up"]],
     }
 
 
 def format_summary_table(rows: List[Dict[str, Any]]) -> str:
     """Fixed-width text table of :func:`summarize` rows."""
     head = (f"{'recording':<46} {'dur[s]':>7} {'rate[Hz]':>8} {'ax':>2} {'GT%':>6} {'gaps>50ms':>9} "
-            f"{'gap[s]':>6} {'GT@start':>9} {'rest[s]':>7}  rest gyro mean [deg/s]")
+            f"{'gap[s]':>6} {'GT@start':>9} {'rest[s]':>7} {'gyro~GT[deg]':>12} {'up in GT frame':>18}"
+            "  rest gyro mean [deg/s]")
     lines = [head, "-" * len(head)]
     for r in rows:
         start = "missing" if r["gt_missing_at_start"] else "ok"
@@ -246,7 +254,9 @@ def format_summary_table(rows: List[Dict[str, Any]]) -> str:
             start += f" {r['gt_start_s']:.1f}s"
         g = r["rest_gyro_mean_dps"]
         gs = "n/a" if not np.all(np.isfinite(g)) else "(" + ", ".join(f"{x:+.3f}" for x in g) + ")"
+        ang = "n/a" if r.get("gt_gyro_angle_deg") is None else f"{r['gt_gyro_angle_deg']:.1f}"
+        up = "n/a" if r.get("gt_up") is None else "(" + ", ".join(f"{x:+.2f}" for x in r["gt_up"]) + ")"
         lines.append(f"{r['name'][:46]:<46} {r['duration_s']:7.1f} {r['rate_hz']:8.2f} {r['axes']:>2} "
                      f"{r['gt_valid_pct']:6.2f} {r['gaps']:9d} {r['gaps_total_s']:6.2f} {start:>9} "
-                     f"{r['rest_s']:7.1f}  {gs}")
+                     f"{r['rest_s']:7.1f} {ang:>12} {up:>18}  {gs}")
     return "\n".join(lines)

@@ -17,6 +17,7 @@ sidecar ``<file stem>.yaml`` next to the file, with any of
 ====================  =====================================  ==========
 key                   values                                 default
 ====================  =====================================  ==========
+``time_unit``         ``s``, ``ms``, ``us``, ``ns``          ``s``
 ``gyr_unit``          ``rad/s``, ``deg/s``                   ``rad/s``
 ``acc_unit``          ``m/s^2``, ``g``                       ``m/s^2``
 ``acc_sign``          ``specific_force``, ``gravity``        ``specific_force``
@@ -26,8 +27,10 @@ key                   values                                 default
 ``rate``              nominal rate in Hz                     from ``t``
 ====================  =====================================  ==========
 
-converted here with :mod:`tcn_ahrs.conventions`. Undeclared deg/s or g data is rejected by
-:class:`~tcn_ahrs.sequence.ImuSequence`'s plausibility checks.
+converted here with :mod:`tcn_ahrs.conventions`. A sidecar key not in this table is an error
+(a misspelt declaration must not be ignored). Undeclared deg/s, g, millisecond timestamps, a
+flipped accelerometer, x,y,z,w quaternions or a ground truth that is not z-up are rejected by
+:class:`~tcn_ahrs.sequence.ImuSequence`'s plausibility checks, with the declaration to add.
 
 ``list_recordings(root)`` returns every ``*.csv``/``*.h5``/``*.hdf5`` under ``root``
 (recursively) as its path relative to ``root`` without the suffix (e.g. ``walk/run1``).
@@ -45,7 +48,7 @@ from ._common import check_finite, check_increasing, matrix_to_quat, open_hdf5, 
 
 SUFFIXES = (".csv", ".h5", ".hdf5")
 AXES = ("x", "y", "z")
-ATTR_KEYS = ("gyr_unit", "acc_unit", "acc_sign", "mag_unit", "quat_order", "nav_frame", "rate")
+ATTR_KEYS = ("time_unit", "gyr_unit", "acc_unit", "acc_sign", "mag_unit", "quat_order", "nav_frame", "rate")
 
 
 def list_recordings(root) -> List[str]:
@@ -93,6 +96,13 @@ def _read_sidecar(path: Path) -> Dict:
         raise DataError(str(side), "file", f"expected a YAML mapping of unit/frame declarations: {e}") from None
     if not isinstance(cfg, dict):
         raise DataError(str(side), "file", "expected a YAML mapping of unit/frame declarations")
+    for key in cfg:
+        if key not in ATTR_KEYS:
+            import difflib
+
+            near = difflib.get_close_matches(str(key), ATTR_KEYS, n=1)
+            raise DataError(str(side), str(key), "unknown declaration" + (f" (did you mean {near[0]!r}?)" if near else "")
+                            + f"; expected one of {list(ATTR_KEYS)}")
     return cfg
 
 
@@ -161,6 +171,7 @@ def _convert(src: str, key: str, value, table: Dict[str, callable]):
     return table[unit]
 
 
+_TIME = {"s": lambda x: x, "ms": lambda x: x * 1e-3, "us": lambda x: x * 1e-6, "ns": lambda x: x * 1e-9}
 _GYR = {"rad/s": lambda x: x, "deg/s": conv.deg_to_rad}
 _ACC = {"m/s^2": lambda x: x, "m/s2": lambda x: x, "g": conv.g_to_mps2}
 _ACC_SIGN = {"specific_force": lambda x: x, "gravity": conv.accel_down_to_up}
@@ -170,6 +181,7 @@ _MAG = {"uT": lambda x: x, "G": conv.gauss_to_ut, "Gauss": conv.gauss_to_ut, "nT
 def _build(path: Path, name: str, a: Dict, attrs: Dict) -> ImuSequence:
     src = str(path)
     t = np.asarray(a["t"], dtype=np.float64).reshape(-1)
+    t = _convert(src, "time_unit", attrs.get("time_unit", "s"), _TIME)(t)
     n = t.shape[0]
     if n < 2:
         raise DataError(src, "t", f"expected at least 2 samples, got {n}")
