@@ -21,7 +21,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import so3
-from .checkpoint import AtomicCheckpointIO, CheckpointError, check_layout, layout_meta, load_checkpoint
+from .checkpoint import (AtomicCheckpointIO, CheckpointError, check_layout, checkpoint_meta, layout_meta,
+                         load_checkpoint)
 from .data import AHRSDataModule, augment
 from .losses import attitude_loss, increment_loss
 from .model.ahrs import LearnedAHRS
@@ -467,6 +468,11 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
     ck = load_checkpoint(cfg.ckpt)
     axes = int(cfg.data.get("axes", 9))
+    if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
+        # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
+        print(f"note: {cfg.ckpt} is a 6-axis model: the magnetometer is not used and every method "
+              "is scored as 6-axis (heading relative to the start)")
+        axes = 6
     check_layout(ck, axes, cfg.ckpt)
     seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
     if not seqs:
