@@ -207,8 +207,7 @@ def test_real_broad_test_split_and_6_axes():
 
 def test_inspect_data_script():
     shared("tumvi")
-    out = subprocess.run([sys.executable, "scripts/inspect_data.py", "data=tumvi", "data.split=all",
-                          "data.train_part.seconds=80"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    out = subprocess.run([sys.executable, "scripts/inspect_data.py", "data=tumvi"], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     assert "recordings=3" in lines[0]
