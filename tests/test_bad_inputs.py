@@ -225,3 +225,24 @@ def test_a_misspelt_sidecar_key_is_an_error_with_the_near_match(tmp_path):
     path = _recording(tmp_path, sidecar="gyro_unit: deg/s\n")
     with pytest.raises(DataError, match=r"unknown declaration \(did you mean 'gyr_unit'\?\)"):
         _load(path)
+
+
+@pytest.mark.parametrize("peer", ["vqf", "riann"])
+def test_fixed_period_peers_refuse_irregular_time_steps(peer):
+    from dataclasses import replace
+
+    import numpy as np
+
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.estimators.peers import PEER_CLASSES
+
+    pytest.importorskip(peer)
+    seq = simulate("slow_rotation", 10.0, 100.0, seed=2)
+    est = PEER_CLASSES[peer](axes=6)
+    est.run(seq.without_mag())  # regular: runs
+    t = seq.time.copy()
+    t[500:] += 0.004            # one step of 14 ms at sample 500 against the nominal 10 ms
+    jittered = replace(seq, time=t, check_units=False).without_mag()
+    with pytest.raises(ValueError, match=r"needs a constant sample period.* 0.014 s at sample 500 "
+                                         r"against its nominal 0.01 s"):
+        est.run(jittered)

@@ -211,6 +211,22 @@ class _Peer:
         return triad_quat(seq.accel[0], None if mag is None else mag[0])
 
 
+def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
+    """The sample period (s) of ``seq`` for a peer that takes one fixed period (VQF, RIANN);
+    a ``ValueError`` when any step differs from the nominal period by more than ``tol``
+    (relative): integrating irregular steps with a fixed period would be silently wrong."""
+    ts = 1.0 / float(seq.rate)
+    d = seq.dt[1:]
+    off = np.abs(d - ts) / ts
+    if d.size and float(off.max()) > tol:
+        k = int(np.argmax(off)) + 1
+        raise ValueError(f"{name}: needs a constant sample period, but recording {seq.name!r} steps "
+                         f"{d[k - 1]:.4g} s at sample {k} against its nominal {ts:.4g} s ({seq.rate:.4g} Hz; "
+                         f"steps range {d.min():.4g}..{d.max():.4g} s): resample it to a constant rate, "
+                         "or use a method that takes per-sample time steps (the project filters, imufusion, ahrs)")
+    return ts
+
+
 # ---------------------------------------------------------------------------
 # VQF
 # ---------------------------------------------------------------------------
@@ -248,7 +264,7 @@ class VQFEstimator(_Peer):
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
         mag = _mag_of(seq, self.axes, self.name)
         mag = None if mag is None else np.ascontiguousarray(mag, dtype=np.float64)
-        ts = 1.0 / float(seq.rate)
+        ts = _constant_period(seq, self.name)
         if self.offline:
             out = self._vqf.offlineVQF(gyr, acc, mag, ts, dict(self.params))
         else:
@@ -515,7 +531,7 @@ class RIANNEstimator(_Peer):
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
         gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
-        fs = float(seq.rate)
+        fs = 1.0 / _constant_period(seq, self.name)
         if self.params["streaming"]:
             self._model.reset_state()
             self._model.set_sampling_rate(fs)
