@@ -195,6 +195,7 @@ class _Peer:
 
     base_name = "peer"
     heading_free = False
+    heading_ref = "init"   # "init": heading referred to the given start (as the project filters); "north"
 
     def __init__(self, axes: int, params: Dict[str, Any]):
         self.axes = _check_axes(axes)
@@ -205,10 +206,40 @@ class _Peer:
         return f"{type(self).__name__}(axes={self.axes}, {self.params})"
 
     def _initial(self, seq: ImuSequence, init_quat: Optional[np.ndarray], mag) -> np.ndarray:
+        """The start attitude the peer gets (ENU, w,x,y,z): ``init_quat`` — for a 9-axis peer
+        rotated about up into the *magnetic* frame (:meth:`_magnetic_from_nav`) — else TRIAD."""
         if init_quat is not None:
             q = np.asarray(init_quat, dtype=np.float64).reshape(4)
-            return q / np.linalg.norm(q)
+            q = q / np.linalg.norm(q)
+            m = self._magnetic_from_nav(q, mag)
+            return q if m is None else _quat_mul_np(m, q)
         return triad_quat(seq.accel[0], None if mag is None else mag[0])
+
+    def _magnetic_from_nav(self, q0: np.ndarray, mag) -> Optional[np.ndarray]:
+        """With a magnetometer and a given start attitude, the rotation about up from the caller's
+        navigation frame into the magnetic one (``heading_ref="init"`` of the project filters,
+        :func:`tcn_ahrs.filters.common.magnetic_from_nav`): a 9-axis peer pulls heading to
+        magnetic north, so started from a motion-capture attitude with arbitrary yaw it would
+        swing by that yaw; run in the magnetic frame and mapped back, it keeps the start.
+        ``heading_ref = "north"``: none (the caller's frame is magnetic ENU)."""
+        if mag is None or self.heading_ref == "north":
+            return None
+        import torch
+
+        from ..filters.common import magnetic_from_nav
+
+        m = magnetic_from_nav(torch.as_tensor(q0, dtype=torch.float64), torch.as_tensor(mag[0], dtype=torch.float64))
+        return m.numpy()
+
+    def _to_caller_frame(self, quat: np.ndarray, init_quat: Optional[np.ndarray], mag) -> np.ndarray:
+        """(N, 4) ENU estimates in the magnetic frame -> the caller's frame (inverse of :meth:`_initial`)."""
+        if init_quat is None:
+            return quat
+        q = np.asarray(init_quat, dtype=np.float64).reshape(4)
+        m = self._magnetic_from_nav(q / np.linalg.norm(q), mag)
+        if m is None:
+            return quat
+        return _quat_mul_np(m * np.array([1.0, -1.0, -1.0, -1.0]), quat)
 
 
 def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
@@ -225,6 +256,15 @@ def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
                          f"steps range {d.min():.4g}..{d.max():.4g} s): resample it to a constant rate, "
                          "or use a method that takes per-sample time steps (the project filters, imufusion, ahrs)")
     return ts
+
+
+def _quat_mul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product (w,x,y,z) of numpy quaternions, broadcast (:func:`tcn_ahrs.so3.quat_mul`)."""
+    import torch
+
+    from .. import so3
+
+    return so3.quat_mul(torch.as_tensor(p, dtype=torch.float64), torch.as_tensor(q, dtype=torch.float64)).numpy()
 
 
 # ---------------------------------------------------------------------------
@@ -371,7 +411,7 @@ class ImufusionEstimator(_Peer):
         signals = {"acc_rejected": acc_rej}
         if self.axes == 9:
             signals["mag_rejected"] = mag_rej
-        return EstimatorOutput(_to_enu(quat, "ENU"), signals)
+        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, "ENU"), init_quat, mag), signals)
 
 
 # ---------------------------------------------------------------------------
@@ -411,7 +451,7 @@ class _AhrsFilter(_Peer):
             quat[k] = self._step(f, quat[k - 1], gyr[k], acc[k], None if mag is None else mag[k], float(dt[k]))
             sig.append(self._signals(f))
         signals = {key: np.stack([s[key] for s in sig]) for key in sig[0]}
-        return EstimatorOutput(_to_enu(quat, self.frame), signals)
+        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, self.frame), init_quat, mag), signals)
 
 
 class AhrsMadgwickEstimator(_AhrsFilter):
