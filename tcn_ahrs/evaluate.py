@@ -324,26 +324,24 @@ def results_markdown(results: dict) -> str:
 
 
 def print_table(results: dict, metric_keys: Optional[Iterable[str]] = None, file=None) -> None:
-    """Plain-text table for terminals: rows recordings (+ Average), columns method × metric."""
+    """Plain-text tables for terminals (< 100 columns): one block per method, rows recordings
+    (+ Average), columns the metrics, all in degrees."""
     file = file or sys.stdout
     if metric_keys is None:
         metric_keys = ["aae_deg", "aye_deg", "ahe_deg"] + [k for k in ("total_deg", "heading_deg", "inclination_deg")
                                                 if _has(results, k)]
     metric_keys = list(metric_keys)
-    methods = list(results["methods"])
-    w0 = max([len("Average")] + [len(r) for r in results["recordings"]])
-    cols = [(m, k) for m in methods for k in metric_keys]
-    widths = [max(8, len(f"{m} {LABELS.get(k, k)}")) for m, k in cols]
-    print(f"{'recording':<{w0}}  " + "  ".join(f"{m + ' ' + LABELS.get(k, k):>{w}}" for (m, k), w in zip(cols, widths)),
-          file=file)
-
-    def line(label, vals):
-        print(f"{label:<{w0}}  " + "  ".join(f"{_fmt(vals[m].get(k)):>{w}}" for (m, k), w in zip(cols, widths)),
+    names = [r if len(r) <= 40 else r[:19] + "~" + r[-20:] for r in results["recordings"]]
+    w0 = max([len("recording"), len("Average")] + [len(r) for r in names])
+    widths = [max(7, len(LABELS.get(k, k))) for k in metric_keys]
+    for method, mres in results["methods"].items():
+        print(f"\n{method} — attitude errors in degrees", file=file)
+        print(f"{'recording':<{w0}}  " + "  ".join(f"{LABELS.get(k, k):>{w}}" for k, w in zip(metric_keys, widths)),
               file=file)
-
-    for i, rec in enumerate(results["recordings"]):
-        line(rec, {m: results["methods"][m]["recordings"][i] for m in methods})
-    line("Average", {m: results["methods"][m]["mean"] for m in methods})
+        rows = list(zip(names, mres["recordings"])) + [("Average", mres["mean"])]
+        for label, vals in rows:
+            print(f"{label:<{w0}}  " + "  ".join(f"{_fmt(vals.get(k)):>{w}}" for k, w in zip(metric_keys, widths)),
+                  file=file)
 
 
 # ---------------------------------------------------------------------------

@@ -159,4 +159,5 @@ def test_errors_and_print_table(sequences):
     buf = io.StringIO()
     print_table(res, file=buf)
     text = buf.getvalue()
-    assert "Raw IMU AAE" in text and "Average" in text and "tumble" in text
+    assert "Raw IMU — attitude errors in degrees" in text and "Average" in text and "tumble" in text
+    assert max(len(line) for line in text.splitlines()) < 100
