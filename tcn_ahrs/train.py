@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import math
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -425,6 +426,12 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
     if not trainer.is_global_zero:
         return result
     print(f"training took {fit_s:.1f} s; best checkpoint {best} ({monitor} = {ckpt_cb.best_model_score})")
+    done_epochs = int(trainer.current_epoch)
+    if cfg.train.get("max_time") and done_epochs < int(cfg.train.epochs):
+        result["stopped_by_time_cap"] = True
+        print(f"WARNING: the time cap train.max_time={cfg.train.max_time} stopped training after "
+              f"{done_epochs} of {int(cfg.train.epochs)} epochs: the model is under-trained. Real data: "
+              "use its schedule (experiment=<name>_cl, no cap) or set train.max_time=null", file=sys.stderr)
 
     ev = cfg.get("eval") or {}
     if ev.get("enabled", True):

@@ -185,3 +185,9 @@ def test_weight_average_is_what_validation_and_release_use(tmp_path, seqs):
     model = model_from_checkpoint(run / "checkpoints" / "last.ckpt")
     for k, v in model.state_dict().items():
         assert torch.equal(v, avg[k])
+
+
+def test_a_time_cap_that_stops_training_says_so(tmp_path, seqs, capsys):
+    res = _train(tmp_path / "cap", seqs, ["train.epochs=50", "train.max_time=00:00:00:01"])
+    assert res.get("stopped_by_time_cap")
+    assert "time cap train.max_time=00:00:00:01 stopped training after" in capsys.readouterr().err
