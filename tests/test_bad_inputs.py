@@ -185,7 +185,22 @@ def _x_up_ground_truth(c):
     assert np.isfinite(c["quat"]).all()
 
 
+def _rotated_ground_truth_body(c):
+    import torch
+
+    from tcn_ahrs import so3
+
+    # the motion-capture body frame is the IMU frame turned 90 deg about x: C_nav_from_body = C R
+    r = so3.matrix_to_quat(torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64))
+    c["quat"] = so3.quat_mul(torch.as_tensor(c["quat"]), r).numpy()
+
+
+def _arbitrary_field_units(c):
+    c["mag"] = c["mag"] * 0.37  # e.g. raw counts of an uncalibrated magnetometer
+
+
 @pytest.mark.parametrize("edit, field, message", [
+    (_rotated_ground_truth_body, "quat", r"the gyro disagrees with the rate differentiated from the ground truth"),
     (_moving_part_in_degrees, "gyro", r"deg/s"),
     (_gravity_not_specific_force, "accel", r"acc_sign: gravity"),
     (_xyzw, "quat", r"in x,y,z,w order \(HDF5: declare quat_order: xyzw"),
@@ -206,6 +221,9 @@ def test_undeclared_units_frames_and_gaps_are_refused_with_the_fix(tmp_path, edi
     (_moving_part_in_degrees, "gyr_unit: deg/s\n"),
     (_gravity_not_specific_force, "acc_sign: gravity\n"),
     (_milliseconds, "time_unit: ms\n"),
+    (_x_up_ground_truth, "nav_frame: [[0, 0, -1], [0, 1, 0], [1, 0, 0]]\n"),
+    (_rotated_ground_truth_body, "gt_body_from_imu: [[1, 0, 0], [0, 0, 1], [0, -1, 0]]\n"),
+    (_rotated_ground_truth_body, "gt_body_from_imu: [0.7071067811865476, -0.7071067811865476, 0, 0]\n"),
 ])
 def test_the_declaration_named_in_the_message_loads_the_recording_right(tmp_path, edit, sidecar):
     import numpy as np
@@ -246,3 +264,14 @@ def test_fixed_period_peers_refuse_irregular_time_steps(peer):
     with pytest.raises(ValueError, match=r"needs a constant sample period.* 0.014 s at sample 500 "
                                          r"against its nominal 0.01 s"):
         est.run(jittered)
+
+
+def test_a_magnetometer_in_arbitrary_units_keeps_its_direction(tmp_path):
+    import numpy as np
+
+    (tmp_path / "ref").mkdir()
+    ref = _load(_recording(tmp_path / "ref"))
+    seq = _load(_recording(tmp_path, _arbitrary_field_units, "mag_unit: arbitrary\n"))
+    unit = lambda m: m / np.linalg.norm(m, axis=1, keepdims=True)  # noqa: E731
+    np.testing.assert_allclose(unit(seq.mag), unit(ref.mag), atol=1e-7)
+    assert np.median(np.linalg.norm(seq.mag, axis=1)) == pytest.approx(50.0)

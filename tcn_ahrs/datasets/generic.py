@@ -21,9 +21,16 @@ key                   values                                 default
 ``gyr_unit``          ``rad/s``, ``deg/s``                   ``rad/s``
 ``acc_unit``          ``m/s^2``, ``g``                       ``m/s^2``
 ``acc_sign``          ``specific_force``, ``gravity``        ``specific_force``
-``mag_unit``          ``uT``, ``G`` (Gauss), ``nT``          ``uT``
+``mag_unit``          ``uT``, ``G`` (Gauss), ``nT``,         ``uT``
+                      ``arbitrary`` (direction only: scaled
+                      to a median norm of 50 uT)
 ``quat_order``        ``wxyz``, ``xyzw``                     ``wxyz``
-``nav_frame``         ``ENU``, ``NED``, ``NWU``              ``ENU``
+``nav_frame``         ``ENU``, ``NED``, ``NWU``, or the      ``ENU``
+                      3x3 matrix ``C_enu_from_frame`` (rows;
+                      e.g. an x-up motion-capture world)
+``gt_body_from_imu``  the ground-truth body's attitude       identity
+                      relative to the IMU: quaternion
+                      (w,x,y,z) or 3x3 matrix ``C_body_from_imu``
 ``rate``              nominal rate in Hz                     from ``t``
 ====================  =====================================  ==========
 
@@ -48,7 +55,8 @@ from ._common import check_finite, check_increasing, matrix_to_quat, open_hdf5, 
 
 SUFFIXES = (".csv", ".h5", ".hdf5")
 AXES = ("x", "y", "z")
-ATTR_KEYS = ("time_unit", "gyr_unit", "acc_unit", "acc_sign", "mag_unit", "quat_order", "nav_frame", "rate")
+ATTR_KEYS = ("time_unit", "gyr_unit", "acc_unit", "acc_sign", "mag_unit", "quat_order", "nav_frame",
+             "gt_body_from_imu", "rate")
 
 
 def list_recordings(root) -> List[str]:
@@ -171,6 +179,34 @@ def _convert(src: str, key: str, value, table: Dict[str, callable]):
     return table[unit]
 
 
+def _rotation(src: str, key: str, value, quaternion: bool) -> Optional[np.ndarray]:
+    """A declared rotation as a 3x3 matrix (None: identity/ENU): a frame name (nav_frame), a
+    3x3 matrix (rows), or — where ``quaternion`` — a (w,x,y,z) quaternion."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        if quaternion:
+            raise DataError(src, key, f"expected a quaternion [w, x, y, z] or a 3x3 matrix, got {value!r}")
+        try:
+            c = conv.enu_from_frame(value)
+        except ValueError as e:
+            raise DataError(src, key, str(e)) from None
+        return None if value.upper() == "ENU" else c
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    if quaternion and m.shape == (4,):
+        n = np.linalg.norm(m)
+        if not abs(n - 1.0) < 1e-3:
+            raise DataError(src, key, f"expected a unit quaternion [w, x, y, z], got norm {n:.4g}")
+        return quat_to_matrix(m[None] / n)[0]
+    if m.shape != (3, 3) or not np.allclose(m @ m.T, np.eye(3), atol=1e-4) or np.linalg.det(m) < 0:
+        what = "a frame name (ENU, NED, NWU) or " if not quaternion else "a quaternion [w, x, y, z] or "
+        raise DataError(src, key, f"expected {what}a 3x3 rotation matrix (orthonormal rows, det +1), got {value!r}")
+    return m
+
+
 _TIME = {"s": lambda x: x, "ms": lambda x: x * 1e-3, "us": lambda x: x * 1e-6, "ns": lambda x: x * 1e-9}
 _GYR = {"rad/s": lambda x: x, "deg/s": conv.deg_to_rad}
 _ACC = {"m/s^2": lambda x: x, "m/s2": lambda x: x, "g": conv.g_to_mps2}
@@ -195,20 +231,27 @@ def _build(path: Path, name: str, a: Dict, attrs: Dict) -> ImuSequence:
     acc = _convert(src, "acc_sign", attrs.get("acc_sign", "specific_force"), _ACC_SIGN)(acc)
     mag = None
     if a["mag"] is not None:
-        mag = _convert(src, "mag_unit", attrs.get("mag_unit", "uT"), _MAG)(check_finite(src, "mag", a["mag"]))
+        mag = check_finite(src, "mag", a["mag"])
+        if str(attrs.get("mag_unit", "uT")) == "arbitrary":
+            # an AHRS uses the field's direction (and its norm only to flag disturbances)
+            mag = mag * (50.0 / max(float(np.median(np.linalg.norm(mag, axis=1))), 1e-12))
+        else:
+            mag = _convert(src, "mag_unit", attrs.get("mag_unit", "uT"), _MAG)(mag)
     quat = valid = None
     if a["quat"] is not None:
         quat = np.asarray(a["quat"], dtype=np.float64)
         valid = np.all(np.isfinite(quat), axis=1)
-        frame = str(attrs.get("nav_frame", "ENU")).upper()
-        try:
-            c = conv.enu_from_frame(frame)
-        except ValueError as e:
-            raise DataError(src, "nav_frame", str(e)) from None
-        if frame != "ENU" and valid.any():
-            # nav_from_body in `frame` -> ENU: R_enu = C_enu_from_frame @ R_frame.
+        c_nav = _rotation(src, "nav_frame", attrs.get("nav_frame", "ENU"), quaternion=False)
+        c_body = _rotation(src, "gt_body_from_imu", attrs.get("gt_body_from_imu"), quaternion=True)
+        if (c_nav is not None or c_body is not None) and valid.any():
+            # ground truth nav'_from_body' -> ENU nav_from_imu: C = C_enu_from_nav' C_gt C_body'_from_imu
+            r = quat_to_matrix(quat[valid] / np.linalg.norm(quat[valid], axis=1, keepdims=True))
+            if c_nav is not None:
+                r = c_nav @ r
+            if c_body is not None:
+                r = r @ c_body
             q = quat.copy()
-            q[valid] = matrix_to_quat(c @ quat_to_matrix(quat[valid] / np.linalg.norm(quat[valid], axis=1, keepdims=True)))
+            q[valid] = matrix_to_quat(r)
             quat = q
     score = None
     if a["score"] is not None:
