@@ -275,3 +275,21 @@ def test_a_magnetometer_in_arbitrary_units_keeps_its_direction(tmp_path):
     unit = lambda m: m / np.linalg.norm(m, axis=1, keepdims=True)  # noqa: E731
     np.testing.assert_allclose(unit(seq.mag), unit(ref.mag), atol=1e-7)
     assert np.median(np.linalg.norm(seq.mag, axis=1)) == pytest.approx(50.0)
+
+
+def test_motion_capture_flips_are_masked_not_scored():
+    """gt_outliers: a sample flipped by 180 deg and a 5-sample jump are found; clean data is not touched."""
+    import numpy as np
+
+    from tcn_ahrs.datasets._common import gt_outliers, quat_mul
+    from tcn_ahrs.datasets.simulate import simulate
+
+    seq = simulate("fast_rotation", 20.0, 100.0, seed=3)
+    valid = np.ones(len(seq), bool)
+    assert not gt_outliers(seq.quat, valid, seq.gyro, seq.dt).any()
+    q = seq.quat.copy()
+    flip = np.array([0.0, 0.0, 0.0, 1.0])  # 180 deg about z
+    q[700] = quat_mul(flip, q[700])
+    q[1200:1205] = quat_mul(np.array([np.cos(0.1), np.sin(0.1), 0.0, 0.0]), q[1200:1205])  # 11.5 deg jump
+    out = gt_outliers(q, valid, seq.gyro, seq.dt)
+    assert np.flatnonzero(out).tolist() == [700, 1200, 1201, 1202, 1203, 1204]

@@ -184,3 +184,39 @@ def interpolate_quat(t_ref: np.ndarray, q_ref: np.ndarray, t: np.ndarray,
     q = so3.quat_slerp(_t(q0), _t(q1), _t(frac)).numpy()
     out[valid] = q / np.linalg.norm(q, axis=1, keepdims=True)
     return out, valid
+
+
+def gt_outliers(quat: np.ndarray, valid: np.ndarray, gyro: np.ndarray, dt: np.ndarray,
+                window: int = 10, max_deg: float = 5.0) -> np.ndarray:
+    """(N,) bool: ground-truth samples their neighbours contradict (motion-capture flips, jumps).
+
+    Each valid neighbour j within ±``window`` samples predicts attitude k from its own by the
+    gyro's rotation from j to k; a sample whose median disagreement exceeds ``max_deg`` is an
+    outlier. Written with ``D_k = C_k P_k^T`` (P_k the gyro's prefix product): the disagreement
+    of j with k is the angle of ``D_k^T D_j``, so one prefix product serves every pair.
+    quat (N, 4) w,x,y,z nav_from_body (NaN where not valid), gyro (N, 3) rad/s in the same
+    body frame, dt (N,) s (sample k moves k-1 -> k)."""
+    n = quat.shape[0]
+    q = _t(np.where(valid[:, None], quat, [1.0, 0.0, 0.0, 0.0]))
+    steps = so3.exp(_t(gyro * dt[:, None]))
+    steps[0] = torch.eye(3, dtype=steps.dtype)
+    d = (so3.quat_to_matrix(q) @ so3.cumprod_matrix(steps).transpose(-1, -2)).numpy()
+    errs = np.full((n, 2 * window), np.nan)
+    col = 0
+    for o in range(-window, window + 1):
+        if o == 0:
+            continue
+        lo, hi = max(0, -o), min(n, n - o)
+        k = np.arange(lo, hi)
+        tr = np.einsum("nij,nij->n", d[k], d[k + o])
+        ang = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+        ang[~valid[k + o]] = np.nan
+        errs[k, col] = ang
+        col += 1
+    with np.errstate(all="ignore"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: no valid neighbour
+            med = np.nanmedian(errs, axis=1)
+    return valid & np.isfinite(med) & (med > max_deg)

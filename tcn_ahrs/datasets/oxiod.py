@@ -24,7 +24,10 @@ Conversions (measured on the files, see the dataset README):
   Vicon body frame and the Vicon attitude is its ``nav_from_body``. ``meta`` keeps the
   rotation (``body_from_phone``), its angle and the lag (``vicon_lag_samples``). When
   ``align_lag`` is True the ground truth is shifted by that lag (samples that fall off the
-  ends are masked).
+  ends are masked);
+* Vicon outliers (flips and jumps of up to 180 deg in one sample) are masked as invalid ground
+  truth (:func:`tcn_ahrs.datasets._common.gt_outliers`: samples their ±10 neighbours, propagated
+  by the gyro, contradict by > 5 deg; 2-70 per file, none on BROAD/EuRoC); ``meta`` counts them.
 """
 from __future__ import annotations
 
@@ -35,7 +38,7 @@ import numpy as np
 
 from ..conventions import GRAVITY, quat_xyzw_to_wxyz
 from ..sequence import DataError, ImuSequence
-from ._common import body_rate_from_quat, check_finite, read_numeric_csv
+from ._common import body_rate_from_quat, check_finite, gt_outliers, read_numeric_csv
 
 RATE = 100.0
 IMU_NCOLS = (16, 17)
@@ -155,8 +158,12 @@ def load_files(imu_path, vi_path, name: Optional[str] = None, align_lag: bool = 
         else:
             shifted[:lag], sv[:lag] = quat[-lag:], valid[-lag:]
         quat, valid = shifted, sv
+    # Vicon flips and jumps (up to 180 deg in one sample): masked, not scored (nothing invented)
+    outliers = gt_outliers(quat, valid, gyro, np.diff(time, prepend=time[0] - 1.0 / RATE))
+    valid = valid & ~outliers
+    quat = np.where(valid[:, None], quat, np.nan)
     angle = float(np.degrees(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0))))
-    meta = {"dataset": "oxiod", "imu_file": str(imu_path), "vicon_file": str(vi_path),
+    meta = {"gt_outliers_masked": int(outliers.sum()),"dataset": "oxiod", "imu_file": str(imu_path), "vicon_file": str(vi_path),
             "body_from_phone": r.tolist(), "body_from_phone_angle_deg": angle,
             "vicon_lag_samples": int(lag) if align_lag else 0, "estimated_lag_samples": int(lag),
             "gyro_vs_vicon_median_angle_deg": resid,
