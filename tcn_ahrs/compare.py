@@ -820,7 +820,7 @@ def average_rows(results: dict, keys: Sequence[str] = ("aae_deg", "aye_deg", "in
 # Hydra entry points
 # ===========================================================================
 
-COMPARE_KEYS = {"on_calibrated", "methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_max_seconds_per_recording",
+COMPARE_KEYS = {"on_calibrated", "methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_data", "tune_root", "tune_max_seconds_per_recording",
                 "tune_lead_seconds", "tune_recordings", "tune_max_batch", "ckpts", "ablation_ckpts", "out", "plots",
                 "trajectories", "align", "device", "threads", "verbose", "reanchor"}
 BENCHMARK_KEYS = COMPARE_KEYS | {"mode", "ckpt", "ckpt_label", "speed", "quick"}  # speed/quick: speed mode
@@ -843,6 +843,27 @@ def _default_out(cfg, kind: str) -> Path:
         return Path("runs") / kind / str(cfg.data.name) / time.strftime("%Y-%m-%d_%H-%M-%S")
 
 
+def _tune_data_cfg(cfg):
+    """The data config the tuning recordings come from: ``tune_data`` (a name in conf/data/, e.g.
+    ``broad``: its shipped training recordings, ``tune_root`` to move its root), else ``cfg.data``."""
+    name = cfg.get("tune_data")
+    if not name:
+        if cfg.get("tune_root"):
+            raise ValueError("tune_root: give tune_data=<name> too (the dataset whose training recordings tune)")
+        return cfg.data
+    from omegaconf import OmegaConf
+
+    path = Path(__file__).resolve().parents[1] / "conf" / "data" / f"{name}.yaml"
+    if not path.is_file():
+        raise ValueError(f"tune_data: no data config {name!r} (expected conf/data/{name}.yaml)")
+    dc = OmegaConf.load(path)
+    dc.pop("defaults", None)
+    if cfg.get("tune_root"):
+        dc.root = str(cfg.tune_root)
+    dc.axes = cfg.data.get("axes", dc.get("axes", 9))
+    return dc
+
+
 def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
     """``scripts/compare.py`` (and ``scripts/benchmark.py accuracy``): load ``data.split`` for
     evaluation and ``tune_split`` (train) for tuning, run :func:`compare`, print the averages."""
@@ -858,9 +879,12 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
     if tune_split not in ("train", "trainval"):
         raise ValueError(f"tune_split: expected 'train' (the training parts of the training recordings) or "
                          f"'trainval', got {tune_split!r}: tuning never uses test/validation recordings")
-    if cfg.get("tune") and (split in ("train", "trainval", "all") or (tune_split == "trainval" and split == "val")):
+    tune_data = _tune_data_cfg(cfg)
+    if (cfg.get("tune") and tune_data is cfg.data
+            and (split in ("train", "trainval", "all") or (tune_split == "trainval" and split == "val"))):
         raise ValueError(f"tune=true with data.split={split}: the evaluation would include the tuning recordings "
-                         f"(tune_split={tune_split}); evaluate on test (or val with tune_split=train)")
+                         f"(tune_split={tune_split}); evaluate on test (or val with tune_split=train), or tune on "
+                         "another dataset's training recordings (tune_data=broad)")
     methods = list(_plain(cfg.get("methods")) or CLASSICAL_METHODS)
     if cfg.get("peers"):
         methods += [m for m in PEER_METHODS if m not in methods]
@@ -872,7 +896,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
     if not eval_seqs:
         raise ValueError(f"{kind}: no recordings with ground truth in data '{cfg.data.name}' split '{split}' "
                          f"(root {cfg.data.get('root')})")
-    tune_seqs = load_split(cfg.data, tune_split) if cfg.get("tune") else []
+    tune_seqs = load_split(tune_data, tune_split) if cfg.get("tune") else []
     load_s = time.perf_counter() - t0
     out = _default_out(cfg, kind)
     res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=int(cfg.data.get("axes", 9)),
