@@ -26,7 +26,7 @@ import numpy as np
 
 from ..sequence import DataError, ImuSequence, ground_truth_agreement, rest_mask
 
-REAL_DATASETS = ("broad", "euroc", "tumvi", "oxiod", "generic")
+REAL_DATASETS = ("broad", "euroc", "tumvi", "oxiod", "generic", "rosbag")
 DATASETS = REAL_DATASETS + ("simulated",)
 SPLITS = ("train", "val", "trainval", "test", "all")
 _REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -167,7 +167,10 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
         names = [r for r in names if r in available]
     seqs: List[ImuSequence] = []
     for rec in names:
-        seq = mod.load_recording(root, rec)
+        if getattr(mod, "WANTS_CONFIG", False):  # e.g. the ROS bag topics
+            seq = mod.load_recording(root, rec, cfg=_plain(data_cfg))
+        else:
+            seq = mod.load_recording(root, rec)
         seq.meta.setdefault("recording", rec)
         if split in ("train", "val") and fold is None:
             train, val = split_recording(seq, _get(data_cfg, "train_part", {}))

@@ -88,7 +88,7 @@ def load_file(path, name: Optional[str] = None) -> ImuSequence:
         arrays, attrs = _read_hdf5(path)
     else:
         raise DataError(str(path), "file", f"expected a .csv, .h5 or .hdf5 file, got suffix {path.suffix!r}")
-    return _build(path, name or path.stem, arrays, attrs)
+    return build(path, name or path.stem, arrays, attrs)
 
 
 # --------------------------------------------------------------------------------- readers
@@ -214,8 +214,14 @@ _ACC_SIGN = {"specific_force": lambda x: x, "gravity": conv.accel_down_to_up}
 _MAG = {"uT": lambda x: x, "G": conv.gauss_to_ut, "Gauss": conv.gauss_to_ut, "nT": conv.nt_to_ut}
 
 
-def _build(path: Path, name: str, a: Dict, attrs: Dict) -> ImuSequence:
+def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic") -> ImuSequence:
+    """Arrays in the generic layout (``t``, ``gyr``, ``acc``, ``mag``, ``quat``, ``score``; absent:
+    None) plus the declarations ``attrs`` -> a validated :class:`ImuSequence` (also used by the
+    ROS bag loader, so every format gets the same conversions and checks)."""
     src = str(path)
+    bad = set(attrs) - set(ATTR_KEYS)
+    if bad:
+        raise DataError(src, sorted(bad)[0], f"unknown declaration; expected one of {list(ATTR_KEYS)}")
     t = np.asarray(a["t"], dtype=np.float64).reshape(-1)
     t = _convert(src, "time_unit", attrs.get("time_unit", "s"), _TIME)(t)
     n = t.shape[0]
@@ -260,6 +266,6 @@ def _build(path: Path, name: str, a: Dict, attrs: Dict) -> ImuSequence:
             raise DataError(src, "score", f"expected shape ({n},), got {s.shape}")
         score = np.nan_to_num(s, nan=0.0) > 0.5
     rate = float(attrs.get("rate", 0.0) or 0.0)
-    meta = {"dataset": "generic", "declared": {k: attrs[k] for k in ATTR_KEYS if k in attrs}}
+    meta = {"dataset": dataset, "declared": {k: attrs[k] for k in ATTR_KEYS if k in attrs}}
     return ImuSequence(name=name, source=src, time=t, gyro=gyro, accel=acc, mag=mag, quat=quat,
                        quat_valid=valid, score_mask=score, rate=rate, meta=meta)
