@@ -293,3 +293,16 @@ def test_motion_capture_flips_are_masked_not_scored():
     q[1200:1205] = quat_mul(np.array([np.cos(0.1), np.sin(0.1), 0.0, 0.0]), q[1200:1205])  # 11.5 deg jump
     out = gt_outliers(q, valid, seq.gyro, seq.dt)
     assert np.flatnonzero(out).tolist() == [700, 1200, 1201, 1202, 1203, 1204]
+
+
+def test_a_text_cell_and_a_semicolon_csv_are_named(tmp_path):
+    from tcn_ahrs.datasets.generic import load_file
+    from tcn_ahrs.sequence import DataError
+
+    p = tmp_path / "r.csv"
+    p.write_text("t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z\n0,0,0,0,0,0,9.81\n0.01,0,abc,0,0,0,9.81\n")
+    with pytest.raises(DataError, match=r"field 'row 3, column 3 \('gyr_y'\)': expected a number, found 'abc'"):
+        load_file(p)
+    p.write_text("t;gyr_x;gyr_y;gyr_z;acc_x;acc_y;acc_z\n0;0;0;0;0;0;9.81\n")
+    with pytest.raises(DataError, match=r"header is separated by ';'"):
+        load_file(p)

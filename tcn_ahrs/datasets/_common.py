@@ -86,6 +86,10 @@ def read_numeric_csv(path: Path, header: bool, ncols: Sequence[int] | None = Non
         if not lines:
             raise DataError(str(path), "file", "expected a header row and data rows, the file is empty")
         names = [c.strip() for c in lines[0].split(",")]
+        if len(names) == 1 and any(d in lines[0] for d in (";", "\t")):
+            sep = "';'" if ";" in lines[0] else "a tab"
+            raise DataError(str(path), "header", f"expected comma-separated columns, the header is separated "
+                                                 f"by {sep}: save the file with commas (e.g. pandas to_csv(sep=','))")
         lines = lines[1:]
     if not lines:
         raise DataError(str(path), "file", "expected data rows, found none (empty file)")
@@ -101,8 +105,16 @@ def read_numeric_csv(path: Path, header: bool, ncols: Sequence[int] | None = Non
         rows.append([c.strip() or "nan" for c in cells])  # empty cell = missing value
     try:
         values = np.array(rows, dtype=np.float64)
-    except ValueError as e:
-        raise DataError(str(path), "values", f"expected numbers only: {e}") from None
+    except ValueError:
+        for i, cells in enumerate(rows):  # name the first bad cell: row (1-based, as in an editor) and column
+            for j, c in enumerate(cells):
+                try:
+                    float(c)
+                except ValueError:
+                    col = f"column {j + 1}" + (f" ({names[j]!r})" if j < len(names) else "")
+                    raise DataError(str(path), f"row {i + 1 + int(header)}, {col}",
+                                    f"expected a number, found {c!r}") from None
+        raise
     first = None
     if int_first_column:
         try:
