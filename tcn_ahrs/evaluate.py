@@ -140,6 +140,13 @@ def evaluate(
     for s in sequences:
         if s.quat is None:
             raise ValueError(f"{s.source}: field 'quat': recording {s.name!r} has no ground truth to evaluate against")
+    unscored = [s for s in sequences if not s.scored().any()]
+    for s in unscored:
+        why = ("its ground truth is invalid (NaN) everywhere" if not s.quat_valid.any()
+               else "its score mask selects no sample with valid ground truth")
+        if len(unscored) == len(sequences):
+            raise ValueError(f"{s.source}: field 'quat': nothing to score in any recording ({s.name!r}: {why})")
+        warnings.warn(f"{s.source}: recording {s.name!r} is not scored: {why}", stacklevel=2)
     if dataset is None:
         dataset = str(sequences[0].meta.get("dataset", "")) if sequences else ""
 

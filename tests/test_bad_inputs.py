@@ -306,3 +306,22 @@ def test_a_text_cell_and_a_semicolon_csv_are_named(tmp_path):
     p.write_text("t;gyr_x;gyr_y;gyr_z;acc_x;acc_y;acc_z\n0;0;0;0;0;0;9.81\n")
     with pytest.raises(DataError, match=r"header is separated by ';'"):
         load_file(p)
+
+
+def test_nothing_to_score_is_an_error_not_a_table_of_dashes():
+    from dataclasses import replace
+
+    import numpy as np
+
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.estimators.raw import RawIntegration
+    from tcn_ahrs.evaluate import evaluate
+
+    seq = simulate("slow_rotation", 5.0, 100.0, seed=1)
+    no_gt = replace(seq, name="no_gt", quat=np.full_like(seq.quat, np.nan), quat_valid=None, check_units=False)
+    masked = replace(seq, name="masked", score_mask=np.zeros(len(seq), bool), check_units=False)
+    for bad, why in ((no_gt, "invalid \\(NaN\\) everywhere"), (masked, "score mask selects no sample")):
+        with pytest.raises(ValueError, match=f"nothing to score in any recording .*{why}"):
+            evaluate([RawIntegration()], [bad], plots=False, trajectories=False)
+    with pytest.warns(UserWarning, match="'masked' is not scored"):
+        evaluate([RawIntegration()], [seq, masked], plots=False, trajectories=False)
