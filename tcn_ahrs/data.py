@@ -178,6 +178,23 @@ class AHRSDataModule(pl.LightningDataModule):
             if self.val_seqs is None:
                 self.val_seqs = load_split(self.data_cfg, "val")
         keep = [s for s in self.train_seqs if s.has_gt and s.quat_valid.any()]
+        if not keep:
+            dc = self.data_cfg or {}
+            name, root = dc.get("name", "?"), dc.get("root", "?")
+            if not self.train_seqs:
+                listed = list(dc.get("train") or []) if hasattr(dc, "get") else []
+                found = ""
+                try:
+                    from .datasets import list_recordings
+
+                    found = ", ".join(list_recordings(dc)[:8]) or "none"
+                except Exception:  # noqa: BLE001 - only for the hint
+                    pass
+                raise ValueError(f"data '{name}': no training recordings: data.train lists "
+                                 f"{len(listed)} under root {root} (found there: {found}); set "
+                                 "data.train=[name, ...] (and data.test) or use a data config that lists them")
+            raise ValueError(f"data '{name}': none of the {len(self.train_seqs)} training recordings has valid "
+                             "ground truth (quat) to train on")
         longest = max((len(s) for s in keep), default=0) - self.margin
         if longest < self.window:
             warnings.warn(f"training window {self.window} is longer than every training recording "

@@ -325,3 +325,18 @@ def test_nothing_to_score_is_an_error_not_a_table_of_dashes():
             evaluate([RawIntegration()], [bad], plots=False, trajectories=False)
     with pytest.warns(UserWarning, match="'masked' is not scored"):
         evaluate([RawIntegration()], [seq, masked], plots=False, trajectories=False)
+
+
+def test_training_a_folder_without_a_train_list_says_what_to_set(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from tcn_ahrs.train import train_main
+
+    _recording(tmp_path)  # tmp_path/rec.csv
+    conf = __import__("pathlib").Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose("train", overrides=["data=generic", f"data.root={tmp_path}", f"run_dir={tmp_path / 'run'}",
+                                          "threads=1"])
+    with pytest.raises(ValueError, match=r"no training recordings: data.train lists 0 .*found there: rec.*"
+                                         r"set data.train=\[name, ...\]"):
+        train_main(cfg)
