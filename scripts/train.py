@@ -1,11 +1,10 @@
 #!/usr/bin/env python
 """Train the learned AHRS, then evaluate it on held-out recordings.
 
-    python scripts/train.py                          # simulator, a few minutes on a CPU
-    python scripts/train.py data=broad data.root=../shared/datasets/broad
-    python scripts/train.py experiment=broad9        # the paper's 1800 epochs
-    python scripts/train.py model=dig_like trainer=gpu
-    python scripts/train.py resume=true hydra.run.dir=runs/simulated/<that run>
+    python scripts/train.py                                  # simulator, < 3 min on 2 CPU cores
+    python scripts/train.py experiment=broad9_cl data.fold=0 # real data with its schedule (fold 0 held out)
+    python scripts/train.py experiment=broad9                # the paper's open loop, 1800 epochs (GPU)
+    python scripts/train.py resume=true run_dir=runs/broad/<that run>   # continue after a kill
 
 Configuration: conf/train.yaml (+ groups data/ model/ trainer/ experiment/).
 """
