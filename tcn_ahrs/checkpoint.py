@@ -129,6 +129,8 @@ def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") 
         model.load_state_dict(state)
     except RuntimeError as e:
         raise CheckpointError(f"{path}: weights do not match the model config stored with them: {e}") from e
+    rate = (meta.get("layout") or {}).get("rate_hz") or meta.get("rate_hz")
+    model.trained_rate_hz = None if not rate else float(rate)  # checked against the data by LearnedEstimator
     model.eval()
     return model
 

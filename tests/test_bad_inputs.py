@@ -340,3 +340,14 @@ def test_training_a_folder_without_a_train_list_says_what_to_set(tmp_path):
     with pytest.raises(ValueError, match=r"no training recordings: data.train lists 0 .*found there: rec.*"
                                          r"set data.train=\[name, ...\]"):
         train_main(cfg)
+
+
+def test_a_recording_at_another_rate_than_the_model_was_trained_at_warns(tmp_path):
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.estimators.learned import LearnedEstimator
+
+    model = LearnedAHRS(axes=9, loop="closed", tcn={"channels": [4, 4, 4, 4]})
+    model.trained_rate_hz = 285.7
+    seq = simulate("slow_rotation", 4.0, 100.0, seed=1)
+    with pytest.warns(UserWarning, match=r"at 100 Hz but the model was trained at 285.7 Hz"):
+        LearnedEstimator(model).run(seq, seq.quat[0])

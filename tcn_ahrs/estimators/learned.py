@@ -1,6 +1,7 @@
 """The learned AHRS as an :class:`~tcn_ahrs.estimators.base.Estimator` (wraps a trained checkpoint)."""
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Optional, Union
 
@@ -61,6 +62,11 @@ class LearnedEstimator:
         return self.model.axes
 
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+        trained = getattr(self.model, "trained_rate_hz", None)
+        if trained and abs(float(seq.rate) / trained - 1.0) > 0.05:
+            warnings.warn(f"{self.name}: recording {seq.name!r} is at {seq.rate:.4g} Hz but the model was trained "
+                          f"at {trained:.4g} Hz: its networks' time scale and rest window assume {trained:.4g} Hz "
+                          "(resample the recording, or train at its rate)", stacklevel=2)
         imu = model_input(self.model, seq, self.device, f"model {self.ckpt_path or ''}")
         dt = torch.as_tensor(seq.dt, dtype=torch.float32, device=self.device)[None]
         start = 0
