@@ -383,13 +383,12 @@ def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu",
 _TRAIN_ALIASES = {"robust": "robust_eskf", "esekf": "eskf"}
 
 
-def baseline_estimators(names, rate: Optional[float] = None) -> list:
+def baseline_estimators(names) -> list:
     """Baselines by short name for the training/evaluation scripts: ``raw`` (Raw IMU), project
     filters (``ecf``, ``mahony``, ``madgwick``, ``eskf``, ``robust_eskf``; named after the
     method, using the magnetometer when the recording has one) and peers (``vqf9d``-style names
     or the method name for 9D). Unavailable or unknown ones are skipped with a warning (a
-    missing baseline must not lose a trained model's evaluation). ``rate`` is unused (kept for
-    the old signature)."""
+    missing baseline must not lose a trained model's evaluation)."""
     out = []
     for n in names or []:
         n = _TRAIN_ALIASES.get(str(n), str(n))

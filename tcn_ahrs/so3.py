@@ -265,12 +265,3 @@ def integrate(r0: Tensor, omega: Tensor, dt: Tensor) -> Tensor:
     first = r0.unsqueeze(-3)
     prod = cumprod_matrix(torch.cat([first, inc], -3))
     return prod
-
-
-def project_to_so3(r: Tensor) -> Tensor:
-    """Nearest rotation matrix (SVD), to clean up accumulated round-off."""
-    u, _, vh = torch.linalg.svd(r)
-    d = torch.det(u @ vh)
-    s = torch.ones_like(r[..., 0])
-    s = torch.cat([s[..., :2], d.unsqueeze(-1)], -1)
-    return u @ torch.diag_embed(s) @ vh

@@ -272,14 +272,6 @@ def model_axes(cfg) -> int:
     return axes
 
 
-def baseline_estimators(names, rate: Optional[float] = None) -> list:
-    """Baselines by short name; moved to :func:`tcn_ahrs.compare.baseline_estimators` (the one
-    method registry), kept here as a thin alias."""
-    from .compare import baseline_estimators as _baselines
-
-    return _baselines(names, rate)
-
-
 def find_resume_checkpoint(run_dir: Path) -> Path:
     """``run_dir/checkpoints/last.ckpt``, else the newest ``last.ckpt`` among sibling run dirs."""
     own = run_dir / "checkpoints" / "last.ckpt"
@@ -446,8 +438,10 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
             warnings.warn(f"no held-out recordings with ground truth in split {ev.get('split', 'test')!r}; "
                           "skipping the evaluation")
             return result
+        from .compare import baseline_estimators as _baselines  # the one method registry
+
         learned = LearnedEstimator(best, name=str(ev.get("name", "Learned AHRS")))
-        estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", [])))
+        estimators = [learned] + _baselines(["raw"] + list(ev.get("baselines", [])))
         res = evaluate(estimators, test_seqs, out_dir=run_dir / "eval", axes=axes,
                        dataset=str(cfg.data.name), plots=bool(ev.get("plots", True)),
                        trajectories=bool(ev.get("trajectories", True)))
@@ -488,7 +482,9 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     out = cfg.get("out") or str(_run_dir(cfg))
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
                                reanchor=cfg.get("reanchor"))
-    estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []))
+    from .compare import baseline_estimators as _baselines  # the one method registry
+
+    estimators = [learned] + _baselines(["raw"] + list(cfg.get("baselines") or []))
     res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),
                    plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
                    align=bool(cfg.get("align", True)))

@@ -227,6 +227,3 @@ class RobustESEKF(ESEKF):
         n_iter = int(p.pop("n_iter"))
         return eskf(gyro, accel, dt, q0, mag=mag, robust=True, n_iter=n_iter, **scalars, **p)
 
-
-ESTIMATORS = {c.name: c for c in (ClosedLoopECF, Mahony, Madgwick, ESEKF, RobustESEKF)}
-"""name -> class, for configs."""
