@@ -34,14 +34,11 @@ the string returned by the module's ``metadata()`` method):
 
 Numerics: the TCN runs in float32 (``net_dtype``; BatchNorm folded into the convolutions,
 dropout off), the calibration matrices, the ECF and the attitude integration in float64
-(quaternions, blocked prefix-product scan). Measured (tests/test_export.py, 2000 samples,
-random non-trivial weights): batch vs streaming <= 9e-9 rad; either vs the eager float32 model
-<= 2.6e-6 rad (the eager model's own float32 ECF pre-integration dominates); with
-``net_dtype=float64`` both equal the eager model run in float64 to < 1e-10 rad.
-``net_dtype=bfloat16`` (batch module only, opt-in: ``export_checkpoint(..., mode="batch",
-net_dtype="bfloat16")``) runs the convolutions in bfloat16 (~2x faster TCN on AVX512-BF16
-CPUs) and is NOT within that parity: 2e-4 to 1.4e-3 rad over 60 s against the eager model
-with the test's random weights (docs/performance.md).
+(quaternions, blocked prefix-product scan). The parity bounds (batch vs streaming vs the eager
+model; float64 networks vs eager float64) are the tolerances asserted in ``tests/test_export.py``
+and ``tests/test_export_closed_loop.py``. ``net_dtype=bfloat16`` (batch module only, opt-in:
+``export_checkpoint(..., mode="batch", net_dtype="bfloat16")``) runs the convolutions in bfloat16
+(faster on AVX512-BF16 CPUs) and is NOT within those bounds (docs/performance.md).
 
 Exported modules are frozen (:func:`torch.jit.freeze`, public methods kept): flags and
 weights become constants. The streaming step folds the input normalisation into the first

@@ -5,7 +5,7 @@ Each real-data module (``broad``, ``euroc``, ``tumvi``, ``oxiod``, ``generic``) 
 ``simulate`` (the embedded default) exposes ``load_split(data_cfg, split)``. Adding a dataset =
 one module with those two functions + one ``conf/data/<name>.yaml``; nothing here changes.
 
-Data configuration (``conf/data/<name>.yaml``, see ``/work/notes/datacfg.md``)::
+Data configuration (``conf/data/<name>.yaml``; ``data/README.md`` documents each)::
 
     name: euroc                       # module name in this package
     root: ../shared/datasets/euroc    # relative to the working directory (falls back to the repo root)

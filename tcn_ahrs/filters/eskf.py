@@ -1,6 +1,6 @@
 """Error-state EKF for attitude + gyro bias, plain and adaptive-robust.
 
-Plain filter after /work/shared/papers/es-ekf-imu-encoder-magnetometer.txt (Eqs. 1-20),
+Plain filter after the paper ``es-ekf-imu-encoder-magnetometer`` (``../shared/papers``) (Eqs. 1-20),
 reduced to attitude (that paper also carries position/velocity, which an AHRS does not
 observe) and extended with the gyro bias (Sola, "Quaternion kinematics for the error-state
 Kalman filter", 2017, Sec. 5-7, which the paper follows):
@@ -29,7 +29,7 @@ Kalman filter", 2017, Sec. 5-7, which the paper follows):
 * Kalman gain Eq. 12, Joseph form Eq. 17, injection Eq. 16 (``q <- q (x) exp(dtheta)``,
   ``b <- b + db``), reset Eqs. 18-20 (``P <- G P G^T``, ``G = diag(I - [dtheta/2]x, I)``).
 
-Adaptive-robust variant after /work/shared/papers/adaptive-robust-ckf-uwb-imu.txt
+Adaptive-robust variant after the paper ``adaptive-robust-ckf-uwb-imu`` (``../shared/papers``)
 (Eqs. 39-42, Algorithm 1), per observation (gravity direction, then heading):
 
 * ``gamma = r^T S^-1 r`` (Eq. 39), ``S = H P H^T + R``, compared with the chi-square quantile
