@@ -68,6 +68,10 @@ from typing import Any, Dict, List, Optional
 import numpy as np
 
 from ..conventions import GRAVITY, enu_from_frame, rad_to_deg
+# quaternions (w,x,y,z, Hamilton) on numpy arrays: the project's so3 through its numpy wrappers
+from ..datasets._common import matrix_to_quat as _matrix_to_quat
+from ..datasets._common import quat_conj as _quat_conj
+from ..datasets._common import quat_mul as _quat_mul
 from ..sequence import ImuSequence
 from .base import Estimator, EstimatorOutput
 
@@ -101,36 +105,6 @@ def _import_peer(module: str, package: str, peer: str):
             f"install the optional peers with: {INSTALL_HINT}") from e
 
 
-# ---------------------------------------------------------------------------
-# small numpy quaternion helpers (w,x,y,z, Hamilton)
-# ---------------------------------------------------------------------------
-
-
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a ⊗ b, broadcasting over leading dimensions."""
-    aw, ax, ay, az = np.moveaxis(np.asarray(a, dtype=np.float64), -1, 0)
-    bw, bx, by, bz = np.moveaxis(np.asarray(b, dtype=np.float64), -1, 0)
-    return np.stack([
-        aw * bw - ax * bx - ay * by - az * bz,
-        aw * bx + ax * bw + ay * bz - az * by,
-        aw * by - ax * bz + ay * bw + az * bx,
-        aw * bz + ax * by - ay * bx + az * bw,
-    ], axis=-1)
-
-
-def _quat_conj(q: np.ndarray) -> np.ndarray:
-    return np.asarray(q, dtype=np.float64) * np.array([1.0, -1.0, -1.0, -1.0])
-
-
-def _matrix_to_quat(m: np.ndarray) -> np.ndarray:
-    """(3,3) rotation matrix -> (4,) quaternion w,x,y,z with w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(m).as_quat()
-    q = np.array([w, x, y, z])
-    return q if w >= 0 else -q
-
-
 def _frame_to_enu_quat(frame: str) -> np.ndarray:
     """Quaternion of ``enu_from_frame(frame)``: q_enu_from_body = q ⊗ q_frame_from_body."""
     return _matrix_to_quat(enu_from_frame(frame))
@@ -149,23 +123,13 @@ def _from_enu(q_enu_from_body: np.ndarray, frame: str) -> np.ndarray:
 
 
 def triad_quat(accel: np.ndarray, mag: Optional[np.ndarray] = None) -> np.ndarray:
-    """Attitude ``nav_from_body`` (w,x,y,z, ENU) from one accelerometer sample (specific
-    force, up) and optionally one magnetometer sample; without the magnetometer the body
-    x axis is given zero heading (yaw = 0)."""
-    up = np.asarray(accel, dtype=np.float64)
-    up = up / np.linalg.norm(up)
-    ref = np.asarray(mag, dtype=np.float64) if mag is not None else None
-    if ref is None:
-        # zero heading: the body x axis (y when x is almost vertical), made horizontal, is east
-        bx = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        east = bx - (bx @ up) * up
-    else:
-        east = np.cross(ref, up)  # field points north (and down): m x up points east
-    east /= np.linalg.norm(east)
-    north = np.cross(up, east)
-    # rows: the ENU axes expressed in the body frame = R_nav_from_body
-    r_nav_from_body = np.stack([east, north, up], axis=0)
-    return _matrix_to_quat(r_nav_from_body)
+    """:func:`tcn_ahrs.filters.common.triad_quat` (the one TRIAD) on numpy samples (3,) -> (4,)."""
+    import torch
+
+    from ..filters.common import triad_quat as _triad
+
+    t = lambda x: torch.as_tensor(np.asarray(x, dtype=np.float64))  # noqa: E731
+    return _triad(t(accel), None if mag is None else t(mag)).numpy()
 
 
 def _dip_deg(accel: np.ndarray, mag: np.ndarray) -> float:
@@ -212,7 +176,7 @@ class _Peer:
             q = np.asarray(init_quat, dtype=np.float64).reshape(4)
             q = q / np.linalg.norm(q)
             m = self._magnetic_from_nav(q, mag)
-            return q if m is None else _quat_mul_np(m, q)
+            return q if m is None else _quat_mul(m, q)
         return triad_quat(seq.accel[0], None if mag is None else mag[0])
 
     def _magnetic_from_nav(self, q0: np.ndarray, mag) -> Optional[np.ndarray]:
@@ -239,7 +203,7 @@ class _Peer:
         m = self._magnetic_from_nav(q / np.linalg.norm(q), mag)
         if m is None:
             return quat
-        return _quat_mul_np(m * np.array([1.0, -1.0, -1.0, -1.0]), quat)
+        return _quat_mul(m * np.array([1.0, -1.0, -1.0, -1.0]), quat)
 
 
 def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
@@ -256,15 +220,6 @@ def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
                          f"steps range {d.min():.4g}..{d.max():.4g} s): resample it to a constant rate, "
                          "or use a method that takes per-sample time steps (the project filters, imufusion, ahrs)")
     return ts
-
-
-def _quat_mul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product (w,x,y,z) of numpy quaternions, broadcast (:func:`tcn_ahrs.so3.quat_mul`)."""
-    import torch
-
-    from .. import so3
-
-    return so3.quat_mul(torch.as_tensor(p, dtype=torch.float64), torch.as_tensor(q, dtype=torch.float64)).numpy()
 
 
 # ---------------------------------------------------------------------------
