@@ -121,7 +121,7 @@ def test_six_axis_checkpoint_on_nine_axis_data(tmp_path, seqs):
                header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z,quat_w,quat_x,quat_y,quat_z")
     r = subprocess.run([sys.executable, "scripts/evaluate.py", f"ckpt={path}", "data=generic",
                         f"data.root={tmp_path / 'data'}", "data.split=all", f"out={tmp_path / 'ev'}",
-                        "plots=false", "trajectories=false"], cwd=REPO, capture_output=True, text=True, timeout=120)
+                        f"hydra.run.dir={tmp_path / 'ev'}", "plots=false", "trajectories=false"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "6-axis model: the magnetometer is not used" in r.stdout
     res = json.loads((tmp_path / "ev" / "results.json").read_text())
@@ -164,7 +164,7 @@ def test_ddp_two_cpu_processes(tmp_path):
     cmd = [sys.executable, "scripts/train.py", "trainer=ddp", "trainer.accelerator=cpu", "trainer.devices=2",
            "data=simulated", "data.rate=50", "data.splits.train.duration=20", "data.splits.val.duration=10",
            "data.splits.train.count=2", "data.splits.val.count=1", "data.splits.test.count=1",
-           "data.splits.test.duration=10", f"run_dir={tmp_path}"] + [
+           "data.splits.test.duration=10", f"run_dir={tmp_path}", f"hydra.run.dir={tmp_path}"] + [
         o for o in TINY if not o.startswith("data=")] + ["train.epochs=1"]
     r = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=85, env=env)
     assert r.returncode == 0, r.stderr[-3000:]
