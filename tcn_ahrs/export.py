@@ -316,8 +316,8 @@ class _Inputs(nn.Module):
         if isinstance(dt, Tensor):
             d = dt.to(dtype)
             if d.dim() == 0:
-                return d.expand(n)
-            if d.dim() != 1 or d.size(0) != n:
+                d = d.expand(n)
+            elif d.dim() != 1 or d.size(0) != n:
                 raise ValueError("dt: expected a float or shape (" + str(n) + ",), got " + str(list(d.shape)))
         else:
             d = torch.full([n], float(dt), dtype=dtype)

@@ -63,7 +63,7 @@ from __future__ import annotations
 import importlib
 import warnings
 from pathlib import Path
-from typing import Any, Dict, List, Optional
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -169,15 +169,16 @@ class _Peer:
     def __repr__(self) -> str:
         return f"{type(self).__name__}(axes={self.axes}, {self.params})"
 
-    def _initial(self, seq: ImuSequence, init_quat: Optional[np.ndarray], mag) -> np.ndarray:
-        """The start attitude the peer gets (ENU, w,x,y,z): ``init_quat`` — for a 9-axis peer
-        rotated about up into the *magnetic* frame (:meth:`_magnetic_from_nav`) — else TRIAD."""
-        if init_quat is not None:
-            q = np.asarray(init_quat, dtype=np.float64).reshape(4)
-            q = q / np.linalg.norm(q)
-            m = self._magnetic_from_nav(q, mag)
-            return q if m is None else _quat_mul(m, q)
-        return triad_quat(seq.accel[0], None if mag is None else mag[0])
+    def _initial(self, seq: ImuSequence, init_quat: Optional[np.ndarray], mag) -> Tuple[np.ndarray, Optional[np.ndarray]]:
+        """The start attitude the peer gets (ENU, w,x,y,z) and the rotation ``m`` its estimates
+        are mapped back with (:meth:`_to_caller_frame`): ``init_quat`` — for a 9-axis peer rotated
+        about up into the *magnetic* frame (:meth:`_magnetic_from_nav`) — else TRIAD (m None)."""
+        if init_quat is None:
+            return triad_quat(seq.accel[0], None if mag is None else mag[0]), None
+        q = np.asarray(init_quat, dtype=np.float64).reshape(4)
+        q = q / np.linalg.norm(q)
+        m = self._magnetic_from_nav(q, mag)
+        return (q, None) if m is None else (_quat_mul(m, q), m)
 
     def _magnetic_from_nav(self, q0: np.ndarray, mag) -> Optional[np.ndarray]:
         """With a magnetometer and a given start attitude, the rotation about up from the caller's
@@ -195,15 +196,10 @@ class _Peer:
         m = magnetic_from_nav(torch.as_tensor(q0, dtype=torch.float64), torch.as_tensor(mag[0], dtype=torch.float64))
         return m.numpy()
 
-    def _to_caller_frame(self, quat: np.ndarray, init_quat: Optional[np.ndarray], mag) -> np.ndarray:
-        """(N, 4) ENU estimates in the magnetic frame -> the caller's frame (inverse of :meth:`_initial`)."""
-        if init_quat is None:
-            return quat
-        q = np.asarray(init_quat, dtype=np.float64).reshape(4)
-        m = self._magnetic_from_nav(q / np.linalg.norm(q), mag)
-        if m is None:
-            return quat
-        return _quat_mul(m * np.array([1.0, -1.0, -1.0, -1.0]), quat)
+    @staticmethod
+    def _to_caller_frame(quat: np.ndarray, m: Optional[np.ndarray]) -> np.ndarray:
+        """(N, 4) ENU estimates in the magnetic frame -> the caller's frame (``m`` from :meth:`_initial`)."""
+        return quat if m is None else _quat_mul(_quat_conj(m), quat)
 
 
 def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
@@ -348,11 +344,13 @@ class ImufusionEstimator(_Peer):
         quat = np.empty((n, 4))
         acc_rej = np.zeros(n, dtype=bool)
         mag_rej = np.zeros(n, dtype=bool)
+        m_from_nav = None
         if init_quat is not None:
             # The start-up phase re-initialises the attitude from the accelerometer (heading 0)
             # at the first update, overwriting set_quaternion: a known start skips it.
+            q_start, m_from_nav = self._initial(seq, init_quat, mag)
             ahrs.skip_startup()
-            ahrs.set_quaternion(self._initial(seq, init_quat, mag))
+            ahrs.set_quaternion(q_start)
         for k in range(n):
             ahrs.set_sample_period(float(dt[k]))
             if mag is None:
@@ -366,7 +364,7 @@ class ImufusionEstimator(_Peer):
         signals = {"acc_rejected": acc_rej}
         if self.axes == 9:
             signals["mag_rejected"] = mag_rej
-        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, "ENU"), init_quat, mag), signals)
+        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, "ENU"), m_from_nav), signals)
 
 
 # ---------------------------------------------------------------------------
@@ -397,7 +395,7 @@ class _AhrsFilter(_Peer):
         mag = _mag_of(seq, self.axes, self.name)
         f = self._make(seq, mag)
         n = len(seq)
-        q_enu0 = self._initial(seq, init_quat, mag)
+        q_enu0, m_from_nav = self._initial(seq, init_quat, mag)
         quat = np.empty((n, 4))
         quat[0] = _from_enu(q_enu0, self.frame)
         gyr, acc, dt = seq.gyro, self.accel_sign * seq.accel, seq.dt
@@ -406,7 +404,7 @@ class _AhrsFilter(_Peer):
             quat[k] = self._step(f, quat[k - 1], gyr[k], acc[k], None if mag is None else mag[k], float(dt[k]))
             sig.append(self._signals(f))
         signals = {key: np.stack([s[key] for s in sig]) for key in sig[0]}
-        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, self.frame), init_quat, mag), signals)
+        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, self.frame), m_from_nav), signals)
 
 
 class AhrsMadgwickEstimator(_AhrsFilter):
