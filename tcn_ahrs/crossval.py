@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Any, Dict, List
+from typing import Any, Dict, List, Tuple
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
@@ -68,12 +68,14 @@ def markdown(result: Dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _folds(cfg: DictConfig) -> List[list]:
+def _folds(cfg: DictConfig) -> Tuple[List[list], List[int]]:
+    """``data.folds`` and the indices to run (``crossval.folds``, default all)."""
     folds = list(OmegaConf.to_container(cfg.data.get("folds"), resolve=True) or []) if cfg.data.get("folds") else []
     if not folds:
         raise ValueError(f"crossval: data '{cfg.data.name}' defines no data.folds (lists of training "
                          "recordings to hold out); add them to its conf/data/*.yaml")
-    return folds
+    idx = list(cfg.crossval.folds) if cfg.crossval.get("folds") is not None else list(range(len(folds)))
+    return folds, idx
 
 
 def untrained_main(cfg: DictConfig) -> Dict[str, Any]:
@@ -88,8 +90,7 @@ def untrained_main(cfg: DictConfig) -> Dict[str, Any]:
     from .model.ahrs import LearnedAHRS
 
     cv = cfg.crossval
-    folds = _folds(cfg)
-    idx = list(cv.folds) if cv.get("folds") is not None else list(range(len(folds)))
+    _, idx = _folds(cfg)
     variants = [dict(v or {}) for v in OmegaConf.to_container(cv.untrained, resolve=True)]
     axes = int(cfg.data.get("axes", 9))
     model_cfg = OmegaConf.to_container(cfg.model, resolve=True)
@@ -129,8 +130,7 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
     cv = cfg.crossval
     if cv.get("untrained"):
         return untrained_main(cfg)
-    folds = _folds(cfg)
-    idx = list(cv.folds) if cv.get("folds") is not None else list(range(len(folds)))
+    folds, idx = _folds(cfg)
     out = Path(str(cv.get("out") or f"runs/crossval/{cfg.data.name}"))
     out.mkdir(parents=True, exist_ok=True)
     methods = list(cv.get("methods") or [])

@@ -46,6 +46,8 @@ def test_exported_modules_refuse_non_finite_readings_and_bad_time_steps(tmp_path
         dt2[30] = bad
         with pytest.raises(Exception, match=r"dt: expected finite time steps > 0 s .* at index 30"):
             batch(_imu(), dt2, Q0)
+    with pytest.raises(Exception, match=r"dt: expected finite time steps > 0 s .* at index 1"):
+        batch(_imu(), torch.tensor(-0.01), Q0)  # a scalar tensor is checked like a float
 
 
 @pytest.mark.parametrize("loop", ["closed", "open"])

@@ -210,9 +210,8 @@ def gt_outliers(quat: np.ndarray, valid: np.ndarray, gyro: np.ndarray, dt: np.nd
     body frame, dt (N,) s (sample k moves k-1 -> k)."""
     n = quat.shape[0]
     q = _t(np.where(valid[:, None], quat, [1.0, 0.0, 0.0, 0.0]))
-    steps = so3.exp(_t(gyro * dt[:, None]))
-    steps[0] = torch.eye(3, dtype=steps.dtype)
-    d = (so3.quat_to_matrix(q) @ so3.cumprod_matrix(steps).transpose(-1, -2)).numpy()
+    p = so3.integrate(torch.eye(3, dtype=torch.float64), _t(gyro), _t(dt))  # P_0 = I, P_k = P_{k-1} exp(ω_k dt_k)
+    d = (so3.quat_to_matrix(q) @ p.transpose(-1, -2)).numpy()
     errs = np.full((n, 2 * window), np.nan)
     col = 0
     for o in range(-window, window + 1):

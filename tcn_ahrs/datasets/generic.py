@@ -104,14 +104,20 @@ def _read_sidecar(path: Path) -> Dict:
         raise DataError(str(side), "file", f"expected a YAML mapping of unit/frame declarations: {e}") from None
     if not isinstance(cfg, dict):
         raise DataError(str(side), "file", "expected a YAML mapping of unit/frame declarations")
-    for key in cfg:
-        if key not in ATTR_KEYS:
-            import difflib
-
-            near = difflib.get_close_matches(str(key), ATTR_KEYS, n=1)
-            raise DataError(str(side), str(key), "unknown declaration" + (f" (did you mean {near[0]!r}?)" if near else "")
-                            + f"; expected one of {list(ATTR_KEYS)}")
+    check_declarations(str(side), cfg)
     return cfg
+
+
+def check_declarations(src: str, attrs: Dict) -> None:
+    """A declaration key not in ``ATTR_KEYS`` is an error naming the nearest key (a misspelt
+    declaration must not be ignored)."""
+    import difflib
+
+    for key in attrs:
+        if key not in ATTR_KEYS:
+            near = difflib.get_close_matches(str(key), ATTR_KEYS, n=1)
+            raise DataError(src, str(key), "unknown declaration" + (f" (did you mean {near[0]!r}?)" if near else "")
+                            + f"; expected one of {list(ATTR_KEYS)}")
 
 
 def _read_csv(path: Path):
@@ -211,7 +217,14 @@ _TIME = {"s": lambda x: x, "ms": lambda x: x * 1e-3, "us": lambda x: x * 1e-6, "
 _GYR = {"rad/s": lambda x: x, "deg/s": conv.deg_to_rad}
 _ACC = {"m/s^2": lambda x: x, "m/s2": lambda x: x, "g": conv.g_to_mps2}
 _ACC_SIGN = {"specific_force": lambda x: x, "gravity": conv.accel_down_to_up}
-_MAG = {"uT": lambda x: x, "G": conv.gauss_to_ut, "Gauss": conv.gauss_to_ut, "nT": conv.nt_to_ut}
+def _direction_only(m: np.ndarray) -> np.ndarray:
+    """``mag_unit: arbitrary``: an AHRS uses the field's direction (its norm only to flag
+    disturbances), so scale to a median norm of 50 uT."""
+    return m * (50.0 / max(float(np.median(np.linalg.norm(m, axis=1))), 1e-12))
+
+
+_MAG = {"uT": lambda x: x, "G": conv.gauss_to_ut, "Gauss": conv.gauss_to_ut, "nT": conv.nt_to_ut,
+        "arbitrary": _direction_only}
 
 
 def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic") -> ImuSequence:
@@ -219,9 +232,7 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     None) plus the declarations ``attrs`` -> a validated :class:`ImuSequence` (also used by the
     ROS bag loader, so every format gets the same conversions and checks)."""
     src = str(path)
-    bad = set(attrs) - set(ATTR_KEYS)
-    if bad:
-        raise DataError(src, sorted(bad)[0], f"unknown declaration; expected one of {list(ATTR_KEYS)}")
+    check_declarations(src, attrs)
     t = np.asarray(a["t"], dtype=np.float64).reshape(-1)
     t = _convert(src, "time_unit", attrs.get("time_unit", "s"), _TIME)(t)
     n = t.shape[0]
@@ -237,12 +248,7 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     acc = _convert(src, "acc_sign", attrs.get("acc_sign", "specific_force"), _ACC_SIGN)(acc)
     mag = None
     if a["mag"] is not None:
-        mag = check_finite(src, "mag", a["mag"])
-        if str(attrs.get("mag_unit", "uT")) == "arbitrary":
-            # an AHRS uses the field's direction (and its norm only to flag disturbances)
-            mag = mag * (50.0 / max(float(np.median(np.linalg.norm(mag, axis=1))), 1e-12))
-        else:
-            mag = _convert(src, "mag_unit", attrs.get("mag_unit", "uT"), _MAG)(mag)
+        mag = _convert(src, "mag_unit", attrs.get("mag_unit", "uT"), _MAG)(check_finite(src, "mag", a["mag"]))
     quat = valid = None
     if a["quat"] is not None:
         quat = np.asarray(a["quat"], dtype=np.float64)
