@@ -744,29 +744,31 @@ def _riann_rows(p, n, rate, seed, threads) -> List[Dict[str, Any]]:
 
 # ============================================================================= filters
 def bench_filters(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, Any]:
+    """Samples/s of registered classical filters (``p["filters"]``, registry names) on one
+    recording: batch b = b parameter sets of the first ``default_grid`` parameter, spread over
+    its grid range, in one ``quat_batch`` call (the path of evaluation and tuning)."""
     from .datasets.simulate import simulate
-    from .filters import ecf, eskf, mahony, triad_quat
+    from .estimators import registry
 
     n, rate = int(p["samples"]), float(p["rate"])
     batches = [int(b) for b in p["batches"]]
     seq = simulate("walking", duration=(n - 1) / rate, rate=rate, seed=seed, axes=9)
     rows = []
-    param = {"ecf": ("k_norm", ecf, (0.1, 2.0)), "mahony": ("k_p", mahony, (0.3, 3.0)),
-             "eskf": ("accel_noise", eskf, (0.01, 0.2))}
     devices = ["cpu"] + (["cuda"] if device == "cuda" else [])
     with _Threads(p["threads"]):
         th = torch.get_num_threads()
         for dev in devices:
-            T = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float64, device=dev)  # noqa: E731
-            gyro, acc, mag, dt = T(seq.gyro), T(seq.accel), T(seq.mag), T(seq.dt)
-            q0 = triad_quat(acc[0], mag[0])
             for name in p["filters"]:
-                if name not in param:
-                    raise ValueError(f"speed.filters.filters: unknown filter {name!r}; expected {sorted(param)}")
-                key, fn, (lo, hi) = param[name]
+                if name not in registry.methods("classical"):
+                    raise ValueError(f"speed.filters.filters: unknown filter {name!r}; expected one of "
+                                     f"{list(registry.methods('classical'))}")
+                est = registry.build(name, 9, device=dev)
+                key, values = next(iter(type(est).default_grid.items()))
+                lo, hi = float(min(values)), float(max(values))
                 for b in batches:
-                    val = torch.linspace(lo, hi, b, dtype=torch.float64, device=dev) if b > 1 else (lo + hi) / 2
-                    call = lambda: fn(gyro, acc, dt, q0, mag, **{key: val})  # noqa: E731
+                    val = (torch.linspace(lo, hi, b, dtype=torch.float64, device=dev)[:, None] if b > 1
+                           else (lo + hi) / 2)
+                    call = lambda: est.quat_batch([seq], [None], {key: val})  # noqa: E731
                     ts = time_calls(call, 0, int(p["repeats"]), dev)
                     s = summary(ts)
                     rows.append({"name": f"tcn_ahrs.filters.{name}", "device": dev, "batch": b, "threads": th,
@@ -784,12 +786,12 @@ def bench_filters(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, An
 
 
 def _peer_filter_rows(p, seq) -> List[Dict[str, Any]]:
-    from .estimators.peers import make_peer
+    from .estimators import registry
 
     rows = []
     for key in p["peers"]:
         try:
-            est = make_peer(key, 9)
+            est = registry.build(key, 9)
         except Exception as e:  # noqa: BLE001
             rows.append({"name": f"{key} (9D)", "device": "cpu", "batch": 1,
                          "skipped": f"unavailable: {type(e).__name__}: {e}"})

@@ -4,7 +4,9 @@ the evaluation runner (:func:`tcn_ahrs.evaluate.evaluate`) and write the paper-s
 Used by ``scripts/compare.py`` (classical methods, optionally peers and checkpoints) and by
 ``scripts/benchmark.py accuracy`` (the same code path with the PyPI peers on by default).
 
-Methods (:data:`CLASSICAL_METHODS`, :data:`PEER_METHODS`):
+Methods: every name of the one registry (:mod:`tcn_ahrs.estimators.registry`; default: every
+raw and classical method, ``peers=true`` adds the PyPI peers, ``plugins=[module]`` imports
+modules registering more):
 
 =================  ==============================================================================
 ``raw``            strapdown integration of the raw gyro (:class:`~tcn_ahrs.estimators.raw.RawIntegration`)
@@ -28,18 +30,14 @@ Tuning (never on evaluation recordings): the training parts of the training reco
 sample (BROAD: the rest phase before the movement is mostly not scored; the lead lets the
 filters settle), at most ``recordings`` of them (evenly spaced over the sorted list so
 each group stays represented). The loss is the mean AAE over the clips
-(:func:`tcn_ahrs.metrics.aae`, filters started at ground truth). Project filters search
-their class's ``default_grid`` (the grid of :func:`tcn_ahrs.tuning.tune_grid`) with ALL
-clips x ALL grid points in one batched filter call per chunk (clips padded to the longest,
-padding ignored; identical to ``tune_grid``, which loops over recordings, checked in the
-tests); peers loop over :data:`tcn_ahrs.estimators.peers.PEER_GRIDS`. The chosen parameters,
-scores and clip list go to ``results["tuning"]``.
+(:func:`tcn_ahrs.metrics.aae`, filters started at ground truth); the search is the one tuner,
+:func:`tcn_ahrs.tuning.tune_method`, over the method's registered grid (project filters: ALL
+clips x ALL grid points in one batched filter call per chunk; peers: one run per point and
+clip). The chosen parameters, scores and clip list go to ``results["tuning"]``.
 
 Evaluation: the project filters expose ``run_batch(seqs, init_quats)`` (all recordings in one
 padded filter call), which :func:`~tcn_ahrs.evaluate.evaluate` prefers over per-recording
-``run``; the default and tuned columns of one filter share that call (:class:`SharedBatch`,
-(P, R) batch), so their ``run_time_s`` is the group's time split over recordings, all of it
-on the first column of the group (``columns[c]["batched_with"]``) - accuracy runs, not timing. Heading-free estimators (RIANN) are scored on inclination only (AAE, AYE, total and
+``run``. Heading-free estimators (RIANN) are scored on inclination only (AAE, AYE, total and
 heading are ``null``); ``inclination_deg`` is reported for every method.
 """
 from __future__ import annotations
@@ -56,214 +54,21 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from . import so3
-from .estimators.base import EstimatorOutput, initial_quat
-from .estimators.classical import ClassicalEstimator, ClosedLoopECF, ESEKF, Madgwick, Mahony, RobustESEKF
+from .estimators import registry
 from .sequence import ImuSequence
 
-CLASSICAL_CLASSES = {"ecf": ClosedLoopECF, "mahony": Mahony, "madgwick": Madgwick, "eskf": ESEKF,
-                     "robust_eskf": RobustESEKF}
-"""Project filter name -> :class:`ClassicalEstimator` subclass."""
-
-PEER_KEYS = {"vqf": "vqf", "imufusion": "imufusion", "ahrs_madgwick": "madgwick",
-             "ahrs_mahony": "mahony", "ahrs_ekf": "ekf", "riann": "riann"}
-"""Comparison method name -> key in :data:`tcn_ahrs.estimators.peers.PEER_CLASSES`."""
-
-CLASSICAL_METHODS = ("raw",) + tuple(CLASSICAL_CLASSES)
-PEER_METHODS = tuple(PEER_KEYS)
-ALL_METHODS = CLASSICAL_METHODS + PEER_METHODS
 VARIANTS = ("default", "tuned")
 TUNED_SUFFIX = " (tuned)"
 
 
-# ===========================================================================
-# the project filters as batched estimators
-# ===========================================================================
-
-
-def _param_tensors(est: ClassicalEstimator, params: Mapping[str, Any]) -> Dict[str, Any]:
-    """Parameters as ClassicalEstimator.run_params converts them (numbers -> tensors, bools and
-    None stay)."""
-    return {k: (torch.as_tensor(v, dtype=est.dtype, device=est.device)
-                if isinstance(v, (int, float, list, tuple, np.ndarray, torch.Tensor)) and not isinstance(v, bool)
-                else v)
-            for k, v in params.items()}
-
-
-def _pad_stack(arrays: Sequence[torch.Tensor], n: int) -> torch.Tensor:
-    """(N_i, ...) tensors -> (R, n, ...), each padded by repeating its last sample (the filters
-    are causal: padding after the end never changes the samples before it)."""
-    out = []
-    for a in arrays:
-        if a.shape[0] < n:
-            a = torch.cat([a, a[-1:].expand((n - a.shape[0],) + tuple(a.shape[1:]))], 0)
-        out.append(a)
-    return torch.stack(out, 0)
-
-
-class ClassicalMethod:
-    """A project filter (:class:`ClassicalEstimator`) run at a fixed number of axes, with a
-    batched multi-recording path.
-
-    ``axes == 6`` never uses the magnetometer (the evaluation runner also hands it the 6-axis
-    view of the recording); ``axes == 9`` uses it when the recording has one.
-    """
-
-    heading_free = False
-
-    def __init__(self, estimator: ClassicalEstimator, axes: int, name: Optional[str] = None):
-        if int(axes) not in (6, 9):
-            raise ValueError(f"axes: expected 6 or 9, got {axes!r}")
-        self.axes = int(axes)
-        self.estimator = estimator.with_params(use_mag=(self.axes == 9))
-        self.name = name or f"{type(estimator).name}{self.axes}d"
-
-    def __repr__(self) -> str:
-        return f"ClassicalMethod({self.name!r}, {self.estimator!r})"
-
-    def quat_batch(self, seqs: Sequence[ImuSequence], init_quats: Sequence[Optional[np.ndarray]],
-                   params: Optional[Mapping[str, Any]] = None) -> Tuple[torch.Tensor, Dict[str, torch.Tensor]]:
-        """Run on all recordings in ONE filter call.
-
-        Args:
-            seqs: R recordings (any lengths; padded to the longest with their last sample).
-            init_quats: R initial attitudes (or ``None``: TRIAD), applied at sample 0.
-            params: parameter overrides; (P, 1)-shaped tensors batch P parameter sets against
-                    the R recordings.
-        Returns:
-            ``quat`` (R, N_max, 4) or (P, R, N_max, 4) nav_from_body (padding beyond each
-            recording's length is meaningless), and the other outputs with the same leading dims.
-        """
-        est = self.estimator
-        if len(seqs) != len(init_quats):
-            raise ValueError(f"{self.name}: {len(seqs)} recordings but {len(init_quats)} initial attitudes")
-        if not seqs:
-            raise ValueError(f"{self.name}: no recordings")
-        ins = [est._inputs(s, q) for s, q in zip(seqs, init_quats)]  # the single-run code path
-        has_mag = [x[4] is not None for x in ins]
-        if any(has_mag) and not all(has_mag):
-            raise ValueError(f"{self.name}: batch mixes recordings with and without magnetometer; "
-                             "run them separately")
-        n = max(len(s) for s in seqs)
-        gyro = _pad_stack([x[0] for x in ins], n)
-        accel = _pad_stack([x[1] for x in ins], n)
-        dt = _pad_stack([x[2] for x in ins], n)
-        q0 = torch.stack([x[3] for x in ins], 0)
-        mag = _pad_stack([x[4] for x in ins], n) if all(has_mag) else None
-        m_from_n = [x[5] for x in ins]
-        p = dict(est.params())
-        for k, v in (params or {}).items():
-            if k not in p:
-                raise ValueError(f"{type(est).__name__}: unknown parameter {k!r}; expected one of {sorted(p)}")
-            p[k] = v
-        p = _param_tensors(est, p)
-        with torch.no_grad():
-            out = est._filter(gyro, accel, dt, q0, mag, p)
-        q = out["quat"]
-        if all(m is not None for m in m_from_n):
-            m = torch.stack(m_from_n, 0)[:, None, :]  # (R, 1, 4) broadcasts over (..., R, N, 4)
-            q = so3.quat_mul(so3.quat_conj(m).expand_as(q), q)
-        out["quat"] = so3.quat_positive(so3.quat_normalize(q))
-        return out["quat"], {k: v for k, v in out.items() if k != "quat"}
-
-    _shared: Optional["SharedBatch"] = None
-
-    def run_batch(self, seqs: Sequence[ImuSequence],
-                  init_quats: Sequence[Optional[np.ndarray]]) -> List[EstimatorOutput]:
-        """One :class:`EstimatorOutput` per recording, computed in one batched filter call
-        (shared with the other parameter variants of the same filter when grouped by
-        :func:`share_batches`)."""
-        if self._shared is not None:
-            return self._shared.outputs(self, seqs, init_quats)
-        quat, sig = self.quat_batch(seqs, init_quats)
-        return _split_outputs(quat, sig, seqs)
-
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
-        """One recording on its own (never through a shared batch)."""
-        quat, sig = self.quat_batch([seq], [init_quat])
-        return _split_outputs(quat, sig, [seq])[0]
-
-
-def _split_outputs(quat: torch.Tensor, sig: Dict[str, torch.Tensor], seqs) -> List[EstimatorOutput]:
-    """(R, N_max, ...) batch outputs -> one EstimatorOutput per recording, padding removed."""
-    res = []
-    for i, s in enumerate(seqs):
-        n = len(s)
-        res.append(EstimatorOutput(quat=quat[i, :n].cpu().numpy(),
-                                   signals={k: v[i, :n].cpu().numpy() for k, v in sig.items()
-                                            if v.dim() >= 2 and v.shape[0] == len(seqs)}))
-    return res
-
-
-class SharedBatch:
-    """Runs P parameter variants of one filter (same class and axes) in ONE batched call over
-    all recordings, (P, R) batch; each member's ``run_batch`` takes its share. Halves the
-    evaluation time of default + tuned columns (the time loop is the cost)."""
-
-    def __init__(self, members: Sequence[ClassicalMethod]):
-        self.members = list(members)
-        first = self.members[0].estimator
-        p_all = [m.estimator.params() for m in self.members]
-        self.params: Dict[str, Any] = {}
-        for k in p_all[0]:
-            vals = [p[k] for p in p_all]
-            if all(v == vals[0] for v in vals):
-                continue
-            self.params[k] = torch.tensor([[float(v)] for v in vals], dtype=first.dtype)
-        self._key = None
-        self._out: Dict[str, List[EstimatorOutput]] = {}
-
-    @staticmethod
-    def can_share(members: Sequence[ClassicalMethod]) -> bool:
-        """Same class, axes and non-numeric parameters; differing ones all numbers."""
-        if len(members) < 2 or len({(type(m.estimator), m.axes) for m in members}) != 1:
-            return False
-        p_all = [m.estimator.params() for m in members]
-        base = {f: getattr(members[0].estimator, f) for f in ("use_mag", "heading_ref", "device", "dtype")}
-        if any({f: getattr(m.estimator, f) for f in base} != base for m in members):
-            return False
-        for k in p_all[0]:
-            vals = [p[k] for p in p_all]
-            if all(v == vals[0] for v in vals):
-                continue
-            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals):
-                return False
-        return True
-
-    def outputs(self, member: ClassicalMethod, seqs, init_quats) -> List[EstimatorOutput]:
-        key = tuple((s.name, len(s), s.has_mag, float(s.gyro[0, 0])) for s in seqs)
-        if key != self._key or member.name not in self._out:
-            quat, sig = self.members[0].quat_batch(seqs, init_quats, self.params)
-            if quat.dim() == 3:  # no parameter differs
-                quat, sig = quat[None], {k: v[None] for k, v in sig.items()}
-            self._key = key
-            self._out = {m.name: _split_outputs(quat[i], {k: v[i] for k, v in sig.items()}, seqs)
-                         for i, m in enumerate(self.members)}
-        return self._out.pop(member.name)
-
-
-def share_batches(estimators: Sequence) -> Dict[str, str]:
-    """Group the :class:`ClassicalMethod` columns of the same filter and axes (default + tuned)
-    into :class:`SharedBatch` runs. Returns column -> first column of its group."""
-    groups: Dict[Tuple[type, int], List[ClassicalMethod]] = {}
-    for e in estimators:
-        if isinstance(e, ClassicalMethod):
-            groups.setdefault((type(e.estimator), e.axes), []).append(e)
-    shared = {}
-    for members in groups.values():
-        if SharedBatch.can_share(members):
-            sb = SharedBatch(members)
-            for m in members:
-                m._shared = sb
-                shared[m.name] = members[0].name
-    return shared
-
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
-        return self.run_batch([seq], [init_quat])[0]
+def default_methods(peers: bool = False) -> List[str]:
+    """Every registered raw and classical method (and, with ``peers``, every peer)."""
+    kinds = ("raw", "classical") + (("peer",) if peers else ())
+    return [m for k in kinds for m in registry.methods(k)]
 
 
 # ===========================================================================
-# method specs and the registry
+# method specs
 # ===========================================================================
 
 
@@ -286,51 +91,41 @@ class MethodSpec:
 
     @property
     def kind(self) -> str:
-        if self.method == "learned":
-            return "learned"
-        if self.method == "raw":
-            return "raw"
-        return "classical" if self.method in CLASSICAL_CLASSES else "peer"
-
-
-def _peer_axes(method: str) -> Tuple[int, ...]:
-    from .estimators.peers import PEER_AXES
-
-    return PEER_AXES[PEER_KEYS[method]]
+        return registry.get(self.method).kind
 
 
 def method_specs(methods: Sequence[str], data_axes: int = 9, both_axes: bool = True,
                  variants: Sequence[str] = ("default",), ckpts: Optional[Mapping[str, str]] = None) -> List[MethodSpec]:
     """The columns to compare, in order: for each method, each axes variant (9D first), each
-    parameter variant; then the checkpoints.
+    parameter variant (``tuned`` only for methods with a grid); then the checkpoints.
 
     Raises ``ValueError`` for an unknown method name or variant.
     """
     data_axes = int(data_axes)
     if data_axes not in (6, 9):
         raise ValueError(f"data.axes: expected 6 or 9, got {data_axes!r}")
-    bad = [m for m in methods if m not in ALL_METHODS]
+    known = [m for m in registry.methods() if registry.get(m).kind != "learned"]
+    bad = [m for m in methods if m not in known]
     if bad:
-        raise ValueError(f"methods: unknown method(s) {bad}; expected names among {list(ALL_METHODS)} "
-                         "(learned models go in ckpts={label: path})")
+        raise ValueError(f"methods: unknown method(s) {bad}; expected names among {known} "
+                         "(learned models go in ckpts={label: path}; more methods: plugins=[module])")
     badv = [v for v in variants if v not in VARIANTS]
     if badv or not variants:
         raise ValueError(f"variants: expected a non-empty subset of {list(VARIANTS)}, got {list(variants)}")
     axes_list = [9, 6] if (data_axes == 9 and both_axes) else [data_axes]
     specs: List[MethodSpec] = []
     for m in dict.fromkeys(methods):
-        if m == "raw":
-            specs.append(MethodSpec("Raw IMU", "raw"))
+        entry = registry.get(m)
+        if entry.kind == "raw":
+            specs.append(MethodSpec("Raw IMU", m))
             continue
-        allowed = (6, 9) if m in CLASSICAL_CLASSES else _peer_axes(m)
         for ax in axes_list:
-            if ax not in allowed:
+            if ax not in entry.axes:
                 continue
             for v in variants:
-                if v == "tuned" and m == "riann":
-                    continue  # no tunable parameters
-                base = f"{m}{ax}d"
-                specs.append(MethodSpec(base + (TUNED_SUFFIX if v == "tuned" else ""), m, ax, v))
+                if v == "tuned" and not entry.tunable:
+                    continue
+                specs.append(MethodSpec(f"{m}{ax}d" + (TUNED_SUFFIX if v == "tuned" else ""), m, ax, v))
     for label, path in (ckpts or {}).items():
         specs.append(MethodSpec(str(label), "learned", ckpt=str(path)))
     names = [s.name for s in specs]
@@ -343,22 +138,15 @@ def method_specs(methods: Sequence[str], data_axes: int = 9, both_axes: bool = T
 def build_estimator(spec: MethodSpec, device: str = "cpu", reanchor: Optional[int] = None):
     """The estimator of one spec (raises :class:`~tcn_ahrs.estimators.peers.PeerUnavailable`
     when a peer's library is missing)."""
-    if spec.kind == "raw":
-        from .estimators.raw import RawIntegration
-
-        return RawIntegration()
-    if spec.kind == "learned":
-        from .estimators.learned import LearnedEstimator
-
-        return LearnedEstimator(spec.ckpt, name=spec.name, device=device, reanchor=reanchor)
-    if spec.kind == "classical":
-        cls = CLASSICAL_CLASSES[spec.method]
-        return ClassicalMethod(cls(device=device, **spec.params), spec.axes, name=spec.name)
-    from .estimators.peers import make_peer
-
-    est = make_peer(PEER_KEYS[spec.method], spec.axes, **spec.params)
-    est.name = spec.name
-    return est
+    kind = spec.kind
+    if kind == "learned":
+        return registry.build("learned", label=spec.name, ckpt=spec.ckpt, device=device, reanchor=reanchor)
+    if kind == "raw":
+        return registry.build(spec.method)
+    params = dict(spec.params)
+    if kind == "classical":
+        params["device"] = device
+    return registry.build(spec.method, spec.axes, label=spec.name, **params)
 
 
 def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu",
@@ -378,39 +166,6 @@ def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu",
         warnings.warn(f"peer estimators skipped (library not installed): {'; '.join(missing)}; "
                       f"install them with: {INSTALL_HINT}", stacklevel=2)
     return out, kept
-
-
-_TRAIN_ALIASES = {"robust": "robust_eskf", "esekf": "eskf"}
-
-
-def baseline_estimators(names) -> list:
-    """Baselines by short name for the training/evaluation scripts: ``raw`` (Raw IMU), project
-    filters (``ecf``, ``mahony``, ``madgwick``, ``eskf``, ``robust_eskf``; named after the
-    method, using the magnetometer when the recording has one) and peers (``vqf9d``-style names
-    or the method name for 9D). Unavailable or unknown ones are skipped with a warning (a
-    missing baseline must not lose a trained model's evaluation)."""
-    out = []
-    for n in names or []:
-        n = _TRAIN_ALIASES.get(str(n), str(n))
-        try:
-            if n == "raw":
-                from .estimators.raw import RawIntegration
-
-                out.append(RawIntegration())
-            elif n in CLASSICAL_CLASSES:
-                out.append(CLASSICAL_CLASSES[n]())
-            else:
-                axes = 9
-                if n[-2:] in ("6d", "9d") and n[:-2] in PEER_KEYS:
-                    n, axes = n[:-2], int(n[-2])
-                if n not in PEER_KEYS:
-                    raise ValueError(f"unknown baseline; expected one of {list(ALL_METHODS)}")
-                if axes not in _peer_axes(n):
-                    axes = _peer_axes(n)[0]
-                out.append(build_estimator(MethodSpec(f"{n}{axes}d", n, axes)))
-        except Exception as e:  # noqa: BLE001
-            warnings.warn(f"baseline {n!r} unavailable, skipped: {type(e).__name__}: {e}")
-    return out
 
 
 # ===========================================================================
@@ -449,76 +204,6 @@ def tuning_clips(seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.
     return clips, record
 
 
-def _mean_score(scores: np.ndarray) -> np.ndarray:
-    """(P, R) -> (P,) mean over recordings with a finite score; inf if none (diverged)."""
-    valid = np.isfinite(scores)
-    with np.errstate(invalid="ignore"):
-        s = np.where(valid, scores, 0.0).sum(1) / np.maximum(valid.sum(1), 1)
-    # a combination that diverges on any clip must not win
-    return np.where(valid.all(1), s, np.inf)
-
-
-def tune_classical(method: str, axes: int, clips: Sequence[ImuSequence], grid: Optional[Mapping[str, list]] = None,
-                   max_batch: int = 128, device: str = "cpu") -> Tuple[Dict[str, Any], List[dict]]:
-    """Grid search of a project filter on the clips (see module docstring): same result as
-    :func:`tcn_ahrs.tuning.tune_grid` (mean AAE over clips, started at ground truth), but all
-    clips x grid points run batched. Returns ``(best_params, table)`` (table best first:
-    ``{"params", "score", "per_sequence"}``)."""
-    from .metrics import aae
-    from .tuning import grid_combinations
-
-    cls = CLASSICAL_CLASSES[method]
-    grid = dict(grid if grid is not None else cls.default_grid)
-    combos = grid_combinations(grid)
-    wrapper = ClassicalMethod(cls(device=device), axes)
-    views = [c.without_mag() if (axes == 6 and c.has_mag) else c for c in clips]
-    q0s = [initial_quat(c) for c in clips]
-    scores = np.full((len(combos), len(clips)), np.nan)
-    per_call = max(1, int(max_batch) // max(1, len(clips)))
-    for start in range(0, len(combos), per_call):
-        chunk = combos[start:start + per_call]
-        params = {k: torch.tensor([[c[k]] for c in chunk], dtype=wrapper.estimator.dtype) for k in chunk[0]}
-        quat, _ = wrapper.quat_batch(views, q0s, params)
-        quat = quat.reshape(-1, len(clips), quat.shape[-2], 4)
-        if quat.shape[0] == 1 and len(chunk) > 1:
-            quat = quat.expand(len(chunk), -1, -1, -1)
-        qn = quat.cpu().numpy()
-        for i in range(len(chunk)):
-            for j, c in enumerate(clips):
-                scores[start + i, j] = aae(c.quat, qn[i, j, :len(c)], c.scored())
-    mean = _mean_score(scores)
-    order = np.argsort(mean, kind="stable")
-    table = [{"params": dict(combos[i]), "score": float(mean[i]),
-              "per_sequence": {c.name: float(scores[i, j]) for j, c in enumerate(clips)}} for i in order]
-    return dict(combos[order[0]]), table
-
-
-def tune_peer(method: str, axes: int, clips: Sequence[ImuSequence]) -> Tuple[Dict[str, Any], List[dict]]:
-    """Loop over :data:`~tcn_ahrs.estimators.peers.PEER_GRIDS` of a peer (each point run on each
-    clip, started at ground truth where the library allows). Same return as
-    :func:`tune_classical`."""
-    from .estimators.peers import PEER_GRIDS, make_peer
-    from .metrics import aae
-
-    key = PEER_KEYS[method]
-    combos = [dict(p) for p in PEER_GRIDS[key]]
-    views = [c.without_mag() if (axes == 6 and c.has_mag) else c for c in clips]
-    scores = np.full((len(combos), len(clips)), np.nan)
-    for i, p in enumerate(combos):
-        est = make_peer(key, axes, **p)
-        for j, (c, v) in enumerate(zip(clips, views)):
-            try:
-                q = est.run(v, initial_quat(c)).quat
-                scores[i, j] = aae(c.quat, q, c.scored())
-            except (FloatingPointError, np.linalg.LinAlgError, ValueError) as e:
-                warnings.warn(f"tuning {method}{axes}d {p} on {c.name}: {type(e).__name__}: {e}")
-    mean = _mean_score(scores)
-    order = np.argsort(mean, kind="stable")
-    table = [{"params": _jsonable(combos[i]), "score": float(mean[i]),
-              "per_sequence": {c.name: float(scores[i, j]) for j, c in enumerate(clips)}} for i in order]
-    return dict(combos[order[0]]), table
-
-
 def _jsonable(v):
     if isinstance(v, dict):
         return {str(k): _jsonable(x) for k, x in v.items()}
@@ -537,14 +222,16 @@ def _jsonable(v):
 def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.0,
                  lead_seconds: float = 10.0, max_recordings: Optional[int] = None, max_batch: int = 128,
                  device: str = "cpu", verbose: bool = True) -> dict:
-    """Fill in ``params`` of every ``variant == "tuned"`` spec (in place) from a grid search on
-    clips of ``tune_seqs`` (training recordings only!). One search per (method, axes).
+    """Fill in ``params`` of every ``variant == "tuned"`` spec (in place) from a grid search
+    (:func:`tcn_ahrs.tuning.tune_method`, the registry's grid) on clips of ``tune_seqs``
+    (training recordings only!). One search per (method, axes).
 
     Returns the tuning record ``{"recordings": [clip records], "max_seconds_per_recording",
     "lead_seconds", "methods": {column: {"params", "score_aae_deg", "default_params",
     "grid_size", "time_s", "top": [best 3 rows]}}}``.
     """
     from .estimators.peers import PeerUnavailable
+    from .tuning import tune_method
 
     todo = [s for s in specs if s.variant == "tuned"]
     clips, rec = tuning_clips(tune_seqs, max_seconds, lead_seconds, max_recordings)
@@ -554,16 +241,13 @@ def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], 
         return record
     if not clips:
         raise ValueError("tuning: no training recording with scored ground truth; tune=false to skip tuning")
-    cache: Dict[Tuple[str, int], Tuple[dict, list, float]] = {}
+    cache: Dict[Tuple[str, int], Optional[Tuple[dict, list, float]]] = {}
     for s in todo:
         key = (s.method, int(s.axes))
         if key not in cache:
             t0 = time.perf_counter()
             try:
-                if s.kind == "classical":
-                    best, table = tune_classical(s.method, s.axes, clips, max_batch=max_batch, device=device)
-                else:
-                    best, table = tune_peer(s.method, s.axes, clips)
+                best, table = tune_method(s.method, s.axes, clips, max_batch=max_batch, device=device)
             except PeerUnavailable:
                 cache[key] = None  # the build step skips it with the warning
                 continue
@@ -576,7 +260,8 @@ def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], 
         best, table, dt = cache[key]
         s.params = dict(best)
         if s.kind == "classical":
-            default = {k: getattr(CLASSICAL_CLASSES[s.method](), k) for k in best}
+            est = registry.build(s.method, s.axes)
+            default = {k: getattr(est, k) for k in best}
         else:
             default = {}
         d_row = next((r for r in table if all(_jsonable(r["params"].get(k)) == _jsonable(v) for k, v in default.items())
@@ -597,7 +282,7 @@ def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], 
 
 
 def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] = (),
-            methods: Sequence[str] = CLASSICAL_METHODS, data_axes: Optional[int] = None, both_axes: bool = True,
+            methods: Optional[Sequence[str]] = None, data_axes: Optional[int] = None, both_axes: bool = True,
             variants: Sequence[str] = VARIANTS, tune: bool = True, ckpts: Optional[Mapping[str, str]] = None,
             ablation_ckpts: Optional[Mapping[str, str]] = None, out_dir=None,
             tune_max_seconds_per_recording: Optional[float] = 60.0, tune_lead_seconds: float = 10.0,
@@ -611,7 +296,8 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
         eval_seqs: recordings to score (with ground truth).
         tune_seqs: TRAINING recordings for tuning (must not share samples with ``eval_seqs``:
             same name and overlapping time span is an error).
-        methods: names among :data:`ALL_METHODS`.
+        methods: registered method names (:mod:`tcn_ahrs.estimators.registry`; None:
+            :func:`default_methods`).
         data_axes: 9 or 6 (default: 9 if every evaluation recording has a magnetometer).
         both_axes: on 9-axis data also the 6D variant of each method.
         variants: ``"default"`` and/or ``"tuned"``; ``tune=False`` drops ``"tuned"``.
@@ -645,7 +331,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
                              "one label, one checkpoint")
     all_ckpts = dict(ckpts)
     all_ckpts.update({k: v for k, v in ablation.items() if k not in ckpts})
-    specs = method_specs(methods, data_axes, both_axes, variants, all_ckpts)
+    specs = method_specs(default_methods() if methods is None else methods, data_axes, both_axes, variants, all_ckpts)
 
     tuning: dict = {"enabled": bool(tune and "tuned" in variants)}
     t0 = time.perf_counter()
@@ -674,7 +360,6 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
                 w = OnLearnedCalibration(e, path, label, device)
                 estimators.append(w)
                 specs.append(replace(s_, name=w.name))
-    shared = share_batches(estimators)
     if progress:
         estimators = [_timed(e) for e in estimators]
     t0 = time.perf_counter()
@@ -685,8 +370,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
     res["tuning"] = tuning
     res["columns"] = {s.name: {"method": s.method, "axes": s.axes, "variant": s.variant,
                                "params": _jsonable(s.params), "ckpt": s.ckpt,
-                               "heading_free": bool(getattr(e, "heading_free", False)),
-                               "batched_with": shared.get(s.name)}
+                               "heading_free": bool(getattr(e, "heading_free", False))}
                       for s, e in zip(specs, estimators)}
     res["ablation"] = [k for k in ablation if k in res["methods"]]
     res["timing"] = {"tune_s": round(tune_s, 2), "evaluate_s": round(eval_s, 2),
@@ -819,7 +503,7 @@ def average_rows(results: dict, keys: Sequence[str] = ("aae_deg", "aye_deg", "in
 # Hydra entry points
 # ===========================================================================
 
-COMPARE_KEYS = {"on_calibrated", "methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_data", "tune_root", "tune_max_seconds_per_recording",
+COMPARE_KEYS = {"plugins", "on_calibrated", "methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_data", "tune_root", "tune_max_seconds_per_recording",
                 "tune_lead_seconds", "tune_recordings", "tune_max_batch", "ckpts", "ablation_ckpts", "out", "plots",
                 "trajectories", "align", "device", "threads", "verbose", "reanchor"}
 BENCHMARK_KEYS = COMPARE_KEYS | {"mode", "ckpt", "ckpt_label", "speed", "quick"}  # speed/quick: speed mode
@@ -884,9 +568,10 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
         raise ValueError(f"tune=true with data.split={split}: the evaluation would include the tuning recordings "
                          f"(tune_split={tune_split}); evaluate on test (or val with tune_split=train), or tune on "
                          "another dataset's training recordings (tune_data=broad)")
-    methods = list(_plain(cfg.get("methods")) or CLASSICAL_METHODS)
+    registry.load_plugins(_plain(cfg.get("plugins")))
+    methods = list(_plain(cfg.get("methods")) or default_methods())
     if cfg.get("peers"):
-        methods += [m for m in PEER_METHODS if m not in methods]
+        methods += [m for m in registry.methods("peer") if m not in methods]
     ckpts = dict(_plain(cfg.get("ckpts")) or {})
     if cfg.get("ckpt"):
         ckpts.setdefault(str(cfg.get("ckpt_label") or "Proposed"), str(cfg.ckpt))

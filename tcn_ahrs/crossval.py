@@ -123,7 +123,8 @@ def untrained_main(cfg: DictConfig) -> Dict[str, Any]:
 
 
 def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
-    from .compare import PEER_METHODS, compare
+    from .compare import compare
+    from .estimators import registry
     from .datasets import load_split
     from .train import train_main
 
@@ -135,7 +136,7 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     methods = list(cv.get("methods") or [])
     if cv.get("peers"):
-        methods += [m for m in PEER_METHODS if m not in methods]
+        methods += [m for m in registry.methods("peer") if m not in methods]
     label = str(cv.get("label") or "Learned")
     fold_results = []
     for i in idx:

@@ -438,10 +438,10 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
             warnings.warn(f"no held-out recordings with ground truth in split {ev.get('split', 'test')!r}; "
                           "skipping the evaluation")
             return result
-        from .compare import baseline_estimators as _baselines  # the one method registry
+        from .estimators.registry import baseline_estimators
 
         learned = LearnedEstimator(best, name=str(ev.get("name", "Learned AHRS")))
-        estimators = [learned] + _baselines(["raw"] + list(ev.get("baselines", [])))
+        estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", [])), axes)
         res = evaluate(estimators, test_seqs, out_dir=run_dir / "eval", axes=axes,
                        dataset=str(cfg.data.name), plots=bool(ev.get("plots", True)),
                        trajectories=bool(ev.get("trajectories", True)))
@@ -452,7 +452,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
     return result
 
 
-EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "device", "plots", "trajectories", "name", "threads", "align", "reanchor"}
+EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor"}
 
 
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
@@ -482,9 +482,10 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     out = cfg.get("out") or str(_run_dir(cfg))
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
                                reanchor=cfg.get("reanchor"))
-    from .compare import baseline_estimators as _baselines  # the one method registry
+    from .estimators.registry import baseline_estimators, load_plugins
 
-    estimators = [learned] + _baselines(["raw"] + list(cfg.get("baselines") or []))
+    load_plugins(cfg.get("plugins"))
+    estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
     res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),
                    plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
                    align=bool(cfg.get("align", True)))

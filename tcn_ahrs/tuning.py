@@ -10,15 +10,16 @@ default are its ``tunable`` (with a ``default_grid``):
 * ``ESEKF`` / ``RobustESEKF``: ``accel_noise`` (m/s^2/sqrt(Hz)), ``mag_noise`` (rad/sqrt(Hz))
 
 The loss is the project's AAE (:func:`tcn_ahrs.metrics.aae`, ground truth, scored samples,
-aligned at the first scored sample), averaged over the recordings. All parameter
-combinations of one recording run in ONE batched filter call (the time loop is shared), in
-chunks of ``max_batch``.
+aligned at the first scored sample), averaged over the recordings. All recordings x all
+parameter points run in ONE batched filter call (the time loop is shared), in chunks of
+``max_batch``; :func:`tune_method` tunes any registered method by name (the PyPI peers one run
+per point).
 """
 from __future__ import annotations
 
 import itertools
 import math
-from typing import Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import torch
@@ -52,81 +53,139 @@ def grid_combinations(grid: Mapping[str, Sequence]) -> List[Dict[str, float]]:
     return [dict(zip(keys, vals)) for vals in itertools.product(*(grid[k] for k in keys))]
 
 
-def evaluate_params(estimator: ClassicalEstimator, seq: ImuSequence, combos: Sequence[Mapping[str, float]],
-                    metric: Union[str, MetricFn] = "aae", init: str = "gt", max_batch: int = 256) -> np.ndarray:
-    """Metric of each parameter combination on one recording, (len(combos),), batched.
+def _initial_quats(seqs: Sequence[ImuSequence], init: str) -> List[Optional[np.ndarray]]:
+    if init not in ("gt", "sensor"):
+        raise ValueError(f"init must be 'gt' or 'sensor', got {init!r}")
+    for s in seqs:
+        if s.quat is None:
+            raise ValueError(f"{s.source}: field 'quat': tuning needs ground truth, the recording has none")
+    return [initial_quat(s) if init == "gt" else None for s in seqs]
+
+
+def score_points(estimator: ClassicalEstimator, seqs: Sequence[ImuSequence], points: Sequence[Mapping[str, float]],
+                 metric: Union[str, MetricFn] = "aae", init: str = "gt", max_batch: int = 256) -> np.ndarray:
+    """Metric of each parameter point on each recording, (P, R): ALL recordings x a chunk of
+    points in ONE batched filter call (:meth:`ClassicalEstimator.quat_batch`; recordings padded
+    to the longest, padding never scored), ``max_batch`` runs per call.
 
     ``init="gt"`` starts the filters at the ground-truth attitude of the first valid sample
     (:func:`tcn_ahrs.estimators.base.initial_quat`); ``"sensor"`` lets them initialise from the
-    accelerometer/magnetometer (TRIAD).
+    accelerometer/magnetometer (TRIAD). A recording without scored samples scores NaN.
     """
-    if seq.quat is None:
-        raise ValueError(f"{seq.source}: field 'quat': tuning needs ground truth, the recording has none")
     fn = _metric_fn(metric)
-    q0 = initial_quat(seq) if init == "gt" else None
-    if init not in ("gt", "sensor"):
-        raise ValueError(f"init must be 'gt' or 'sensor', got {init!r}")
-    mask = seq.scored()
-    out = np.full(len(combos), np.nan)
-    if not mask.any():
-        return out
-    n = len(seq)
-    for start in range(0, len(combos), max_batch):
-        chunk = combos[start:start + max_batch]
-        params = {k: torch.tensor([c[k] for c in chunk], dtype=estimator.dtype) for k in chunk[0]}
-        quat = estimator.run_params(seq, params, q0)["quat"].reshape(-1, n, 4).cpu().numpy()
+    q0s = _initial_quats(seqs, init)
+    out = np.full((len(points), len(seqs)), np.nan)
+    per_call = max(1, int(max_batch) // max(1, len(seqs)))
+    for start in range(0, len(points), per_call):
+        chunk = points[start:start + per_call]
+        params = {k: torch.tensor([[c[k]] for c in chunk], dtype=estimator.dtype) for k in chunk[0]}
+        quat, _ = estimator.quat_batch(seqs, q0s, params)
+        quat = quat.reshape(-1, len(seqs), quat.shape[-2], 4)
         if quat.shape[0] == 1 and len(chunk) > 1:  # no parameter actually batched
-            quat = np.repeat(quat, len(chunk), 0)
-        for i in range(len(chunk)):
-            out[start + i] = fn(seq.quat, quat[i], mask)
+            quat = quat.expand(len(chunk), -1, -1, -1)
+        qn = quat.cpu().numpy()
+        for j, s in enumerate(seqs):
+            if s.scored().any():
+                for i in range(len(chunk)):
+                    out[start + i, j] = fn(s.quat, qn[i, j, :len(s)], s.scored())
     return out
+
+
+def evaluate_params(estimator: ClassicalEstimator, seq: ImuSequence, combos: Sequence[Mapping[str, float]],
+                    metric: Union[str, MetricFn] = "aae", init: str = "gt", max_batch: int = 256) -> np.ndarray:
+    """Metric of each parameter combination on one recording, (len(combos),)."""
+    return score_points(estimator, [seq], combos, metric, init, max_batch)[:, 0]
+
+
+def _ranked(points: Sequence[Mapping[str, Any]], scores: np.ndarray,
+            seqs: Sequence[ImuSequence]) -> Tuple[Dict[str, Any], List[dict]]:
+    """(P, R) scores -> best point and the table sorted best first. Recordings without scored
+    samples (NaN for every point) are ignored; a point that diverges (non-finite score) on any
+    other recording scores inf and cannot win."""
+    keep = ~np.isnan(scores).all(0)
+    if not keep.any():
+        raise ValueError("tuning: no recording with scored ground truth samples")
+    sub = scores[:, keep]
+    with np.errstate(invalid="ignore"):
+        mean = np.where(np.isfinite(sub).all(1), np.where(np.isfinite(sub), sub, 0.0).mean(1), np.inf)
+    order = np.argsort(mean, kind="stable")
+    table = [{"params": dict(points[i]), "score": float(mean[i]),
+              "per_sequence": {s.name: float(scores[i, j]) for j, s in enumerate(seqs)}} for i in order]
+    return dict(points[order[0]]), table
 
 
 def tune_grid(
     estimator_cls,
     sequences: Sequence[ImuSequence],
-    grid: Optional[Mapping[str, Sequence]] = None,
+    grid: Optional[Union[Mapping[str, Sequence], Sequence[Mapping[str, Any]]]] = None,
     metric: Union[str, MetricFn] = "aae",
     init: str = "gt",
     max_batch: int = 256,
     **fixed,
 ) -> Tuple[Dict[str, float], List[dict]]:
-    """Grid search of a classical estimator's parameters on training recordings.
+    """Grid search of a classical estimator's parameters on training recordings (the one tuner).
 
     Args:
         estimator_cls: a :class:`ClassicalEstimator` subclass (or an instance, whose other
             parameters are kept).
         sequences: training recordings with ground truth.
-        grid: parameter name -> candidate values; default the class's ``default_grid``.
+        grid: parameter name -> candidate values (their product is searched), or a list of
+            points (dicts); default the class's ``default_grid``.
         metric: ``"aae"`` (default; :func:`tcn_ahrs.metrics.aae`), another metric name of
             :mod:`tcn_ahrs.metrics`, or a callable ``(q_gt, q_est, mask) -> float`` (lower is better).
-        init: ``"gt"`` or ``"sensor"`` initial attitude (see :func:`evaluate_params`).
-        max_batch: parameter sets per batched filter call.
-        **fixed: other estimator fields (e.g. ``use_mag=False``).
+        init: ``"gt"`` or ``"sensor"`` initial attitude (see :func:`score_points`).
+        max_batch: filter runs (points x recordings) per batched call.
+        **fixed: other estimator fields (e.g. ``axes=6``).
     Returns:
-        ``(best_params, table)``: the combination with the lowest mean metric over the
-        recordings (recordings without scored samples are ignored), and one row per
-        combination sorted best first: ``{"params": {...}, "score": mean, "per_sequence": {name: value}}``.
+        ``(best_params, table)``: the point with the lowest mean metric over the recordings,
+        and one row per point sorted best first: ``{"params": {...}, "score": mean,
+        "per_sequence": {name: value}}`` (see :func:`_ranked` for NaN/divergence).
     """
     est = estimator_cls.with_params(**fixed) if isinstance(estimator_cls, ClassicalEstimator) else estimator_cls(**fixed)
-    grid = dict(grid if grid is not None else type(est).default_grid)
-    if not grid:
+    grid = grid if grid is not None else type(est).default_grid
+    points = grid_combinations(grid) if isinstance(grid, Mapping) else [dict(p) for p in grid]
+    if not points:
         raise ValueError(f"{type(est).__name__}: empty grid and no default_grid")
     names = set(est.param_names())
-    bad = [k for k in grid if k not in names]
+    bad = sorted({k for p in points for k in p if k not in names})
     if bad:
         raise ValueError(f"{type(est).__name__}: cannot tune {bad}; parameters are {sorted(names)}")
     if not sequences:
         raise ValueError("tune_grid needs at least one training recording")
-    combos = grid_combinations(grid)
-    scores = np.stack([evaluate_params(est, s, combos, metric, init, max_batch) for s in sequences], 1)
-    with np.errstate(invalid="ignore"):
-        valid = np.isfinite(scores)
-        mean = np.where(valid.any(1), np.nansum(np.where(valid, scores, 0.0), 1) / np.maximum(valid.sum(1), 1), np.inf)
-    order = np.argsort(mean, kind="stable")
-    table = [{"params": dict(combos[i]), "score": float(mean[i]),
-              "per_sequence": {s.name: float(scores[i, j]) for j, s in enumerate(sequences)}} for i in order]
-    return dict(combos[order[0]]), table
+    return _ranked(points, score_points(est, sequences, points, metric, init, max_batch), sequences)
+
+
+def tune_method(method: str, axes: int, sequences: Sequence[ImuSequence],
+                grid: Optional[Sequence[Mapping[str, Any]]] = None, metric: Union[str, MetricFn] = "aae",
+                max_batch: int = 128, device: str = "cpu") -> Tuple[Dict[str, Any], List[dict]]:
+    """Tune a registered method (:mod:`tcn_ahrs.estimators.registry`) over its grid (or
+    ``grid``): classical filters batched (:func:`tune_grid`), other methods (the PyPI peers)
+    one run per point and recording. Same return as :func:`tune_grid`."""
+    import warnings
+
+    from .estimators import registry
+
+    m = registry.get(method)
+    points = [dict(p) for p in (grid if grid is not None else m.grid)]
+    if not points:
+        raise ValueError(f"method {method!r} has no tuning grid")
+    if m.kind == "classical":
+        return tune_grid(registry.build(method, axes, device=device), sequences, points, metric, "gt", max_batch)
+    fn = _metric_fn(metric)
+    q0s = _initial_quats(sequences, "gt")
+    views = [s.without_mag() if (axes == 6 and s.has_mag) else s for s in sequences]
+    scores = np.full((len(points), len(sequences)), np.nan)
+    for i, p in enumerate(points):
+        est = registry.build(method, axes, **p)
+        for j, (s, v) in enumerate(zip(sequences, views)):
+            if not s.scored().any():
+                continue
+            try:
+                scores[i, j] = fn(s.quat, est.run(v, q0s[j]).quat, s.scored())
+            except (FloatingPointError, np.linalg.LinAlgError, ValueError) as e:
+                scores[i, j] = np.inf
+                warnings.warn(f"tuning {method}{axes}d {p} on {s.name}: {type(e).__name__}: {e}")
+    return _ranked(points, scores, sequences)
 
 
 def tune_gradient(

@@ -254,11 +254,11 @@ def test_fixed_period_peers_refuse_irregular_time_steps(peer):
     import numpy as np
 
     from tcn_ahrs.datasets.simulate import simulate
-    from tcn_ahrs.estimators.peers import PEER_CLASSES
+    from tcn_ahrs.estimators import registry
 
     pytest.importorskip(peer)
     seq = simulate("slow_rotation", 10.0, 100.0, seed=2)
-    est = PEER_CLASSES[peer](axes=6)
+    est = registry.build(peer, 6)
     est.run(seq.without_mag())  # regular: runs
     t = seq.time.copy()
     t[500:] += 0.004            # one step of 14 ms at sample 500 against the nominal 10 ms

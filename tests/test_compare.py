@@ -62,24 +62,30 @@ def test_run_batch_equals_single_runs_with_padding(sims):
     seqs = [sims[1], sims[2].slice(0, 700)]
     q0s = [initial_quat(s) for s in seqs]
     for axes in (9, 6):
-        m = cmp.ClassicalMethod(ESEKF(), axes)
+        m = ESEKF(axes=axes)
         batch = m.run_batch(seqs, q0s)
         for s, q0, b in zip(seqs, q0s, batch):
             view = s if axes == 9 else s.without_mag()
-            single = ESEKF(use_mag=(axes == 9)).run(view, q0)
+            single = ESEKF(axes=axes).run(view, q0)
             assert b.quat.shape == (len(s), 4)
             np.testing.assert_allclose(b.quat, single.quat, atol=1e-12)
             np.testing.assert_allclose(b.signals["gyro_bias"], single.signals["gyro_bias"], atol=1e-12)
 
 
-def test_batched_tuning_matches_tune_grid(sims):
-    """The batched grid search picks what tuning.tune_grid (one recording at a time) picks,
-    with the same scores."""
-    clips = [sims[0], sims[1]]
-    best, table = cmp.tune_classical("madgwick", 6, clips)
-    ref_best, ref_table = tune_grid(Madgwick, [c.without_mag() for c in clips], use_mag=False)
-    assert best == ref_best
-    np.testing.assert_allclose([r["score"] for r in table], [r["score"] for r in ref_table], rtol=1e-9)
+def test_batched_tuning_matches_one_recording_at_a_time(sims):
+    """The one tuner runs all clips x grid points in one padded call; each score equals the
+    filter run on that recording alone with that point (different lengths: padding unscored)."""
+    from tcn_ahrs.metrics import aae
+    from tcn_ahrs.tuning import tune_method
+
+    clips = [sims[0], sims[1].slice(0, 700)]
+    best, table = tune_method("madgwick", 6, clips)
+    ref_best, ref_table = tune_grid(Madgwick, clips, axes=6)
+    assert best == ref_best and len(table) == len(Madgwick.default_grid["beta"])
+    for row in table[:3]:
+        for c in clips:
+            alone = Madgwick(axes=6, **row["params"]).run(c.without_mag(), initial_quat(c)).quat
+            assert row["per_sequence"][c.name] == pytest.approx(aae(c.quat, alone, c.scored()), rel=1e-9)
 
 
 def test_tuning_clips_start_before_first_scored_sample(sims):
@@ -240,13 +246,14 @@ def test_missing_peers_are_skipped_with_warning(sims, monkeypatch):
 
 @pytest.mark.skipif(not _peers_installed(), reason="vqf/ahrs not installed (pip install -e .[peers])")
 def test_peer_tuning_loops_over_peer_grid(sims):
-    from tcn_ahrs.estimators.peers import PEER_GRIDS
+    from tcn_ahrs.estimators import registry
 
     res = cmp.compare(sims[1:2], sims[:1], methods=["vqf"], both_axes=False, tune=True,
                       tune_max_seconds_per_recording=8.0, verbose=False)
     t = res["tuning"]["methods"]["vqf9d (tuned)"]
-    assert t["grid_size"] == len(PEER_GRIDS["vqf"])
-    assert t["params"] in [dict(p) for p in PEER_GRIDS["vqf"]]
+    grid = registry.get("vqf").grid
+    assert t["grid_size"] == len(grid)
+    assert t["params"] in [dict(p) for p in grid]
     assert res["columns"]["vqf9d (tuned)"]["params"] == t["params"]
 
 
@@ -279,12 +286,15 @@ def test_ablation_table_layout(sims, tmp_path, monkeypatch):
 
 
 def test_baseline_estimators_registry():
+    from tcn_ahrs.estimators.registry import baseline_estimators
+
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
-        ests = cmp.baseline_estimators(["raw", "ecf", "robust", "nonsense"])
-    assert [e.name for e in ests] == ["Raw IMU", "ecf", "robust_eskf"]
+        ests = baseline_estimators(["raw", "ecf", "robust_eskf", "nonsense"])
+    assert [e.name for e in ests] == ["Raw IMU", "ecf9d", "robust_eskf9d"]
     assert any("nonsense" in str(x.message) for x in w)
-    assert [e.name for e in cmp.baseline_estimators(["raw", "eskf"])] == ["Raw IMU", "eskf"]
+    assert [e.name for e in baseline_estimators(["raw", "eskf"], axes=6)] == ["Raw IMU", "eskf6d"]
+    assert [e.axes for e in baseline_estimators(["mahony6d"])] == [6]
 
 
 def test_benchmark_dispatcher_mode_argument(monkeypatch):
@@ -301,30 +311,28 @@ def test_benchmark_dispatcher_mode_argument(monkeypatch):
         mod._mode_from_argv(["benchmark.py", "sped"])
 
 
-def test_shared_batch_of_variants_equals_separate_runs(sims):
-    """Default + tuned columns of one filter in one (P, R) call == each run alone."""
+def test_parameter_sets_batched_equal_separate_runs(sims):
+    """P parameter sets x R recordings in one quat_batch call == each set run alone."""
+    import torch
+
     from tcn_ahrs.estimators.classical import Mahony
 
     seqs = [sims[1], sims[2].slice(0, 600)]
     q0s = [initial_quat(s) for s in seqs]
-    a = cmp.ClassicalMethod(Mahony(), 9, name="m")
-    b = cmp.ClassicalMethod(Mahony(k_p=0.3, k_i=0.0), 9, name="m (tuned)")
-    c = cmp.ClassicalMethod(Madgwick(), 9, name="g")
-    d = cmp.ClassicalMethod(Madgwick(beta=0.02), 9, name="g (tuned)")
-    ref = {e.name: e.run_batch(seqs, q0s) for e in (a, b)}
-    shared = cmp.share_batches([a, b, c, d])
-    assert shared == {"m": "m", "m (tuned)": "m"}  # beta=None (library default) cannot be stacked
-    for e in (b, a):
-        for out, r in zip(e.run_batch(seqs, q0s), ref[e.name]):
-            np.testing.assert_allclose(out.quat, r.quat, atol=1e-12)
-            assert out.quat.shape == r.quat.shape
+    est = Mahony()
+    quat, _ = est.quat_batch(seqs, q0s, {"k_p": torch.tensor([[1.0], [0.3]]), "k_i": torch.tensor([[0.3], [0.0]])})
+    assert quat.shape == (2, 2, len(seqs[0]), 4)
+    for i, (kp, ki) in enumerate([(1.0, 0.3), (0.3, 0.0)]):
+        for j, r in enumerate(Mahony(k_p=kp, k_i=ki).run_batch(seqs, q0s)):
+            # float64; batched reductions are not bit-identical to unbatched ones (~1e-9 after 1000 steps)
+            np.testing.assert_allclose(quat[i, j, :len(seqs[j])].numpy(), r.quat, atol=1e-8)
 
 
-def test_classical_method_runs_one_recording_alone(sims):
-    """ClassicalMethod.run (one recording) == its batched path; it used to be unreachable."""
-    m = cmp.ClassicalMethod(Madgwick(), 9)
+def test_classical_run_equals_its_batched_path(sims):
+    m = Madgwick(axes=9)
     q0 = initial_quat(sims[1])
-    np.testing.assert_allclose(m.run(sims[1], q0).quat, m.run_batch([sims[1]], [q0])[0].quat, atol=1e-12)
+    np.testing.assert_allclose(m.run(sims[1], q0).quat, m.run_batch([sims[1], sims[2]], [q0, None])[0].quat,
+                               atol=1e-12)
 
 
 def test_on_calibrated_columns_use_the_models_calibration(sims, tmp_path):
@@ -337,7 +345,7 @@ def test_on_calibrated_columns_use_the_models_calibration(sims, tmp_path):
 
     model = LearnedAHRS(axes=9, loop="closed")
     seq = sims[1]
-    base = cmp.ClassicalMethod(Madgwick(), 9)
+    base = Madgwick(axes=9)
     q0 = initial_quat(seq)
     same = OnLearnedCalibration(base, model, "untrained").run(seq, q0)
     np.testing.assert_allclose(same.quat, base.run(seq, q0).quat, atol=1e-6)
@@ -375,3 +383,55 @@ def test_tune_on_shipped_training_data_and_evaluate_on_an_own_folder(tmp_path, m
         pass
     assert [s.name for s in seen["ev"]] == ["mine"]
     assert len(seen["tu"]) > 0 and all(s.meta.get("dataset") != "generic" for s in seen["tu"])
+
+
+PLUGIN = '''"""A trivial classical filter, added the way a user adds one: this file and `plugins=[...]`."""
+from dataclasses import dataclass
+from typing import ClassVar, Dict
+
+from tcn_ahrs.estimators.classical import ClassicalEstimator
+from tcn_ahrs.estimators.registry import register
+
+
+@register("hold", "classical")
+@dataclass
+class Hold(ClassicalEstimator):
+    """Keeps the initial attitude (ignores every sensor)."""
+
+    unused_gain: float = 1.0  # 1/s
+    default_grid: ClassVar[Dict[str, list]] = {"unused_gain": [0.5, 1.0]}
+
+    def _filter(self, gyro, accel, dt, q0, mag, p):
+        return {"quat": q0[:, None, :].expand(gyro.shape[0], gyro.shape[1], 4).clone()}
+'''
+
+
+@pytest.mark.parametrize("config", ["compare", "benchmark"])
+def test_a_new_filter_is_one_file_and_one_config_entry(config, tmp_path, monkeypatch, capsys):
+    """Issue 9's yardstick: a filter module + `plugins=[module]` puts its columns in compare's and
+    benchmark's output, with no other file edited (methods default to every registered one)."""
+    from hydra import compose, initialize_config_dir
+
+    from tcn_ahrs.estimators import registry
+
+    (tmp_path / "my_hold_filter.py").write_text(PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry.methods()  # the built-in modules register first (into the real table)
+    monkeypatch.setattr(registry, "_METHODS", dict(registry._METHODS))  # the registration stays in this test
+    monkeypatch.delitem(sys.modules, "my_hold_filter", raising=False)
+    seq = simulate("fast_rotation", 20.0, 50.0, seed=1)
+    np.savetxt(tmp_path / "mine.csv", np.column_stack([seq.time, seq.gyro, seq.accel, seq.mag, seq.quat]),
+               delimiter=",", comments="", fmt="%.10g",
+               header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z,quat_w,quat_x,quat_y,quat_z")
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config, overrides=["data=generic", f"data.root={tmp_path}", "data.split=all", "peers=false",
+                                         "plugins=[my_hold_filter]", f"out={tmp_path / 'out'}"])
+    res = cmp.compare_main(cfg, cmp.BENCHMARK_KEYS if config == "benchmark" else cmp.COMPARE_KEYS, kind=config)
+    assert "hold9d" in res["methods"] and "hold6d" in res["methods"]
+    assert list(res["methods"])[:2] == ["Raw IMU", "ecf9d"]  # the built-in methods are all still there
+    assert "hold9d" in capsys.readouterr().out
+    assert "hold6d" in (tmp_path / "out" / "results.md").read_text()
+    # it holds its start, so on a rotating recording it is worse than every real filter
+    mean = {k: v["mean"]["aae_deg"] for k, v in res["methods"].items()}
+    assert mean["hold9d"] > mean["ecf9d"]

@@ -20,12 +20,19 @@ DIP = np.deg2rad(64.0)
 FIELD_ENU = 50.0 * np.array([0.0, np.cos(DIP), -np.sin(DIP)])  # north and down, uT
 
 # peer key -> python package it needs
-PKG = {"vqf": "vqf", "imufusion": "imufusion", "madgwick": "ahrs", "mahony": "ahrs",
-       "ekf": "ahrs", "riann": "riann"}
+PKG = {"vqf": "vqf", "imufusion": "imufusion", "ahrs_madgwick": "ahrs", "ahrs_mahony": "ahrs",
+       "ahrs_ekf": "ahrs", "riann": "riann"}
 
 
 def peers_module():
     return importlib.import_module("tcn_ahrs.estimators.peers")
+
+
+def make_peer(key, axes, **params):
+    """A peer through the one registry (as compare/benchmark build it)."""
+    from tcn_ahrs.estimators import registry
+
+    return registry.build(key, axes, **params)
 
 
 def need(key):
@@ -99,9 +106,9 @@ def wrap180(x):
     return (np.asarray(x) + 180.0) % 360.0 - 180.0
 
 
-CASES = [("vqf", 9), ("vqf", 6), ("imufusion", 9), ("imufusion", 6), ("madgwick", 9), ("madgwick", 6),
-         ("mahony", 9), ("mahony", 6), ("ekf", 9), ("ekf", 6), ("riann", 6)]
-AHRS_PKG = {"madgwick", "mahony", "ekf"}
+CASES = [("vqf", 9), ("vqf", 6), ("imufusion", 9), ("imufusion", 6), ("ahrs_madgwick", 9), ("ahrs_madgwick", 6),
+         ("ahrs_mahony", 9), ("ahrs_mahony", 6), ("ahrs_ekf", 9), ("ahrs_ekf", 6), ("riann", 6)]
+AHRS_PKG = {"ahrs_madgwick", "ahrs_mahony", "ahrs_ekf"}
 
 
 # ---------------------------------------------------------------------------
@@ -111,7 +118,7 @@ AHRS_PKG = {"madgwick", "mahony", "ekf"}
 
 def test_import_without_peer_packages(monkeypatch):
     """The module imports with no peer installed; using one fails with the install hint,
-    and peer_estimators skips it with a warning."""
+    and compare's build step skips it with a warning."""
     for mod in ["vqf", "imufusion", "ahrs", "ahrs.filters", "riann", "riann.riann"]:
         monkeypatch.setitem(sys.modules, mod, None)  # makes `import mod` raise ImportError
     monkeypatch.delitem(sys.modules, "tcn_ahrs.estimators.peers", raising=False)
@@ -120,8 +127,10 @@ def test_import_without_peer_packages(monkeypatch):
         peers.VQFEstimator(axes=9)
     with pytest.raises(ImportError, match="imufusion"):
         peers.ImufusionEstimator(axes=6)
+    from tcn_ahrs.compare import MethodSpec, build_estimators
+
     with pytest.warns(UserWarning, match=r"pip install -e \.\[peers\]"):
-        assert peers.peer_estimators(9) == []
+        assert build_estimators([MethodSpec("vqf9d", "vqf", 9)])[0] == []
     monkeypatch.delitem(sys.modules, "tcn_ahrs.estimators.peers", raising=False)
 
 
@@ -141,7 +150,7 @@ def test_static_tilted_attitude(key, axes):
     seq = static_seq()
     if axes == 6:
         seq = seq.without_mag()
-    est = peers.make_peer(key, axes)
+    est = make_peer(key, axes)
     assert est.name == f"{key}{axes}d"
     est.heading_ref = "north"  # the test's frame is magnetic ENU: converge to the field's north
     init = None
@@ -164,12 +173,12 @@ def test_yaw_rate_direction(key, axes):
     increases) at the true rate (catches deg/s vs rad/s and mirrored frames)."""
     need(key)
     peers = peers_module()
-    if peers.PEER_CLASSES[key].heading_free:
+    if make_peer(key, axes).heading_free:
         pytest.skip(f"{key} estimates no heading (heading_free); see test_roll_rate_direction")
     seq = yaw_spin_seq()
     if axes == 6:
         seq = seq.without_mag()
-    out = peers.make_peer(key, axes).run(seq, init_quat=seq.quat[0])
+    out = make_peer(key, axes).run(seq, init_quat=seq.quat[0])
     rate = seq.rate
     k0, k1 = int(4 * rate), len(seq) - 1   # inside the spin (starts at 3 s)
     d_est = np.unwrap(np.radians(heading_deg(out.quat[k0:k1 + 1])))
@@ -203,7 +212,7 @@ def test_roll_rate_direction(key, axes):
     seq = roll_seq()
     if axes == 6:
         seq = seq.without_mag()
-    out = peers.make_peer(key, axes).run(seq, init_quat=seq.quat[0])
+    out = make_peer(key, axes).run(seq, init_quat=seq.quat[0])
     k0 = int(1.0 * seq.rate)
     err = tilt_err_deg(out.quat[k0:], seq.quat[k0:])
     assert np.max(err) < 5.0, (np.argmax(err) + k0, np.max(err))
@@ -323,35 +332,35 @@ def test_vqf_non_contiguous_float32_input():
 # ---------------------------------------------------------------------------
 
 
-def test_peer_estimators_and_grids():
+def test_peer_registry_and_grids():
     for pkg in ("vqf", "imufusion", "ahrs", "riann"):
         pytest.importorskip(pkg)
-    peers = peers_module()
-    names6 = [e.name for e in peers.peer_estimators(6)]
-    names9 = [e.name for e in peers.peer_estimators(9)]
-    assert names6 == ["vqf6d", "imufusion6d", "madgwick6d", "mahony6d", "ekf6d", "riann6d"]
-    assert names9 == ["vqf9d", "imufusion9d", "madgwick9d", "mahony9d", "ekf9d"]
-    tuned = peers.peer_estimators(9, {"madgwick": {"gain": 0.1}})
-    assert [e.params for e in tuned if e.name == "madgwick9d"] == [{"gain": 0.1}]
-    with pytest.raises(ValueError, match="unknown peers"):
-        peers.peer_estimators(9, {"kalman": {}})
+    from tcn_ahrs.estimators import registry
+
+    names = registry.methods("peer")
+    assert names == ("vqf", "imufusion", "ahrs_madgwick", "ahrs_mahony", "ahrs_ekf", "riann")
+    assert [make_peer(n, 6).name for n in names] == [f"{n}6d" for n in names]
+    assert [make_peer(n, 9).name for n in names if 9 in registry.get(n).axes] == [f"{n}9d" for n in names[:-1]]
+    assert make_peer("ahrs_madgwick", 9, gain=0.1).params == {"gain": 0.1}
+    with pytest.raises(ValueError, match="unknown method 'kalman'"):
+        registry.get("kalman")
     with pytest.raises(ValueError, match="axes"):
-        peers.peer_estimators(7)
-    assert set(peers.PEER_GRIDS) == set(peers.PEER_CLASSES)
+        make_peer("riann", 9)
     seq = static_seq(seconds=2.0)
-    for key, grid in peers.PEER_GRIDS.items():
-        assert 1 <= len(grid) <= 6, key
+    for key in names:
+        grid = registry.get(key).grid
+        assert (1 <= len(grid) <= 6) or key == "riann", key
         for point in grid:
-            for axes in peers.PEER_AXES[key]:
-                est = peers.make_peer(key, axes, **point)
+            for axes in registry.get(key).axes:
+                est = make_peer(key, axes, **point)
                 assert all(est.params[k] == v for k, v in point.items())
     # a 9-axis peer on a 6-axis recording names the field
     with pytest.raises(ValueError, match="'mag'"):
-        peers.make_peer("mahony", 9).run(seq.without_mag())
+        make_peer("ahrs_mahony", 9).run(seq.without_mag())
     # defaults are the authors'
-    assert peers.make_peer("madgwick", 6).params["gain"] == 0.033
-    assert peers.make_peer("madgwick", 9).params["gain"] == 0.041
-    assert peers.make_peer("vqf", 9).params["tauAcc"] == 3.0
+    assert make_peer("ahrs_madgwick", 6).params["gain"] == 0.033
+    assert make_peer("ahrs_madgwick", 9).params["gain"] == 0.041
+    assert make_peer("vqf", 9).params["tauAcc"] == 3.0
 
 
 # ---------------------------------------------------------------------------
@@ -375,7 +384,7 @@ def test_broad_heading_at_rest(key):
         pytest.skip(f"BROAD loader not available: {e}")
     seq = broad.load_recording(root, "01_undisturbed_slow_rotation_A")
     seq = seq.slice(0, int(20 * seq.rate))  # rest phase (25-46 s in every trial)
-    out = peers_module().make_peer(key, 9).run(seq)
+    out = make_peer(key, 9).run(seq)
     m = seq.quat_valid.copy()
     m[: int(10 * seq.rate)] = False  # after convergence
     assert m.sum() > 100
@@ -392,7 +401,7 @@ def test_nine_axis_peers_keep_a_start_heading_that_is_not_magnetic_north(key):
     need(key)
     peers = peers_module()
     seq = static_seq()
-    est = peers.make_peer(key, 9)
+    est = make_peer(key, 9)
     yaw = Rotation.from_rotvec(np.deg2rad(70.0) * np.array([0.0, 0.0, 1.0]))
     # the same motion seen in a navigation frame turned 70 deg about up
     q_nav = wxyz(yaw * Rotation.from_quat(seq.quat[:, [1, 2, 3, 0]]))

@@ -43,7 +43,7 @@ def test_tune_grid_madgwick_picks_a_sensible_gain(train):
 
 def test_tune_grid_two_parameters_with_fixed_fields(train):
     grid = {"k_norm": [0.05, 0.5], "a_min": [0.5, 2.0]}
-    best, table = tune_grid(ClosedLoopECF, train, grid, use_mag=False)
+    best, table = tune_grid(ClosedLoopECF, train, grid, axes=6)
     assert len(table) == 4 and set(best) == {"k_norm", "a_min"}
     assert all(set(r["per_sequence"]) == {s.name for s in train} for r in table)
     assert all(np.isfinite(r["score"]) for r in table)
@@ -57,7 +57,7 @@ def test_tune_grid_custom_metric_and_instance(train):
         d = np.abs(np.sum(q_gt[mask] * q_est[mask], 1)).clip(max=1.0)
         return float(np.degrees(2 * np.arccos(d)).max())
 
-    best, table = tune_grid(Mahony(use_mag=False), train[:1], {"k_p": [0.5, 2.0], "k_i": [0.0, 0.2]},
+    best, table = tune_grid(Mahony(axes=6), train[:1], {"k_p": [0.5, 2.0], "k_i": [0.0, 0.2]},
                             metric=worst_error)
     assert len(calls) == 4 and len(table) == 4
 
@@ -77,6 +77,6 @@ def test_default_grids_name_real_parameters():
 
 
 def test_tune_gradient_reduces_the_loss(train):
-    params, history = tune_gradient(Mahony, train[:1], ["k_p"], steps=4, lr=0.3, window=100, k_p=0.02, use_mag=False)
+    params, history = tune_gradient(Mahony, train[:1], ["k_p"], steps=4, lr=0.3, window=100, k_p=0.02, axes=6)
     assert history[-1] < history[0]
     assert params["k_p"] > 0.02

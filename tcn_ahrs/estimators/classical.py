@@ -17,20 +17,23 @@ Common behaviour:
 
 * initial attitude: ``init_quat`` when given (applied at sample 0), else TRIAD from the first
   accelerometer (and magnetometer) sample (:func:`tcn_ahrs.filters.triad_quat`);
-* magnetometer: used when the recording has one and ``use_mag`` is True;
+* ``axes``: 9 uses the magnetometer when the recording has one, 6 never does; the column name
+  is ``<method><axes>d`` (``ecf9d``) unless ``label`` is given;
 * heading reference (``heading_ref``): the filters pull heading to magnetic north.
   ``"init"`` (default) takes the horizontal field direction at the initial attitude as the
   reference (:func:`tcn_ahrs.filters.magnetic_from_nav`), so a ground-truth initial attitude in
   a frame whose +y is not magnetic north is kept instead of being rotated away; ``"north"``
   assumes the navigation frame's +y is magnetic north (the paper's ECF, Eq. 6);
-* ``run_params(seq, params)`` runs P parameter sets in one batched call (used by
-  :mod:`tcn_ahrs.tuning`);
+* ``quat_batch(seqs, init_quats, params)`` runs R recordings x P parameter sets in one
+  batched filter call: the one code path behind ``run``, ``run_batch`` (the evaluation
+  runner), ``run_params`` and the tuner (:mod:`tcn_ahrs.tuning`);
+* registered under their ``method`` name (:mod:`tcn_ahrs.estimators.registry`);
 * float64 on CPU by default (``device`` field to run on a GPU).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
-from typing import Any, ClassVar, Dict, Mapping, Optional, Sequence
+from typing import Any, ClassVar, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -41,20 +44,48 @@ from ..filters import ecf, eskf, madgwick, mahony
 from ..filters.common import magnetic_from_nav, triad_quat
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
+from .registry import register
+
+
+def _pad_stack(arrays: Sequence[Tensor], n: int) -> Tensor:
+    """(N_i, ...) tensors -> (R, n, ...), each padded by repeating its last sample (the filters
+    are causal: padding after the end never changes the samples before it)."""
+    out = []
+    for a in arrays:
+        if a.shape[0] < n:
+            a = torch.cat([a, a[-1:].expand((n - a.shape[0],) + tuple(a.shape[1:]))], 0)
+        out.append(a)
+    return torch.stack(out, 0)
 
 
 @dataclass
 class ClassicalEstimator:
-    """Base of the classical estimators (see the module docstring)."""
+    """Base of the classical estimators (see the module docstring).
 
-    use_mag: bool = True
+    ``axes`` 9 uses the magnetometer when the recording has one, 6 never does (the column
+    ``<method><axes>d``, e.g. ``ecf9d``); ``label`` overrides that column name.
+    """
+
+    axes: int = 9
+    label: Optional[str] = None
     heading_ref: str = "init"  # "init" | "north"
     device: str = "cpu"
     dtype: torch.dtype = torch.float64
 
-    name: ClassVar[str] = "classical"
+    method: ClassVar[str] = "classical"
+    heading_free: ClassVar[bool] = False
     tunable: ClassVar[Sequence[str]] = ()
     default_grid: ClassVar[Dict[str, list]] = {}
+
+    def __post_init__(self):
+        if isinstance(self.axes, bool) or int(self.axes) not in (6, 9):
+            raise ValueError(f"{type(self).__name__}: axes: expected 6 or 9, got {self.axes!r}")
+        self.axes = int(self.axes)
+
+    @property
+    def name(self) -> str:
+        """Column name: ``label`` or ``<method><axes>d``."""
+        return self.label or f"{self.method}{self.axes}d"
 
     # ------------------------------------------------------------------ to override
     def _filter(self, gyro: Tensor, accel: Tensor, dt: Tensor, q0: Tensor, mag: Optional[Tensor],
@@ -80,7 +111,7 @@ class ClassicalEstimator:
     def _inputs(self, seq: ImuSequence, init_quat: Optional[np.ndarray]):
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=self.dtype, device=self.device)  # noqa: E731
         gyro, accel, dt = t(seq.gyro), t(seq.accel), t(seq.dt)
-        mag = t(seq.mag) if (self.use_mag and seq.mag is not None) else None
+        mag = t(seq.mag) if (self.axes == 9 and seq.mag is not None) else None
         if init_quat is None:
             q0 = triad_quat(accel[0], None if mag is None else mag[0])
         else:
@@ -97,33 +128,87 @@ class ClassicalEstimator:
             q0 = so3.quat_mul(m_from_n, q0)
         return gyro, accel, dt, q0, mag, m_from_n
 
-    def run_params(self, seq: ImuSequence, params: Optional[Mapping[str, Any]] = None,
-                   init_quat: Optional[np.ndarray] = None) -> Dict[str, Tensor]:
-        """Run with parameters overridden by ``params`` (name -> scalar or (P,) values, broadcast
-        together); returns the filter's tensors with a leading (P,) dimension when any is batched:
-        ``quat`` (P, N, 4) and the signals."""
+    def _param_tensors(self, params: Optional[Mapping[str, Any]]) -> Dict[str, Any]:
+        """This estimator's parameters overridden by ``params``; numbers become tensors (bools
+        and ``None`` stay)."""
         p = dict(self.params())
         for k, v in (params or {}).items():
             if k not in p:
                 raise ValueError(f"{type(self).__name__}: unknown parameter {k!r}; expected one of {sorted(p)}")
             p[k] = v
-        p = {k: (torch.as_tensor(v, dtype=self.dtype, device=self.device)
-                 if isinstance(v, (int, float, list, tuple, np.ndarray, Tensor)) and not isinstance(v, bool) else v)
-             for k, v in p.items()}
-        gyro, accel, dt, q0, mag, m_from_n = self._inputs(seq, init_quat)
+        return {k: (torch.as_tensor(v, dtype=self.dtype, device=self.device)
+                    if isinstance(v, (int, float, list, tuple, np.ndarray, Tensor)) and not isinstance(v, bool) else v)
+                for k, v in p.items()}
+
+    def quat_batch(self, seqs: Sequence[ImuSequence], init_quats: Sequence[Optional[np.ndarray]],
+                   params: Optional[Mapping[str, Any]] = None) -> Tuple[Tensor, Dict[str, Tensor]]:
+        """Run on all recordings in ONE filter call (the one code path of every run).
+
+        Args:
+            seqs: R recordings (any lengths; padded to the longest with their last sample).
+            init_quats: R initial attitudes (or ``None``: TRIAD), applied at sample 0.
+            params: parameter overrides; (P, 1)-shaped tensors batch P parameter sets against
+                    the R recordings.
+        Returns:
+            ``quat`` (R, N_max, 4) or (P, R, N_max, 4) nav_from_body (padding beyond each
+            recording's length is meaningless), and the other outputs with the same leading dims.
+        """
+        if len(seqs) != len(init_quats):
+            raise ValueError(f"{self.name}: {len(seqs)} recordings but {len(init_quats)} initial attitudes")
+        if not seqs:
+            raise ValueError(f"{self.name}: no recordings")
+        ins = [self._inputs(s, q) for s, q in zip(seqs, init_quats)]
+        has_mag = [x[4] is not None for x in ins]
+        if any(has_mag) and not all(has_mag):
+            raise ValueError(f"{self.name}: batch mixes recordings with and without magnetometer; "
+                             "run them separately")
+        n = max(len(s) for s in seqs)
+        gyro, accel, dt = (_pad_stack([x[i] for x in ins], n) for i in range(3))
+        q0 = torch.stack([x[3] for x in ins], 0)
+        mag = _pad_stack([x[4] for x in ins], n) if all(has_mag) else None
+        p = self._param_tensors(params)
         with torch.no_grad():
             out = self._filter(gyro, accel, dt, q0, mag, p)
-        if m_from_n is not None:
-            out["quat"] = so3.quat_mul(so3.quat_conj(m_from_n), out["quat"])
-        out["quat"] = so3.quat_positive(so3.quat_normalize(out["quat"]))
+        q = out.pop("quat")
+        if all(x[5] is not None for x in ins):
+            m = torch.stack([x[5] for x in ins], 0)[:, None, :]  # (R, 1, 4) broadcasts over (..., R, N, 4)
+            q = so3.quat_mul(so3.quat_conj(m).expand_as(q), q)
+        return so3.quat_positive(so3.quat_normalize(q)), out
+
+    def run_params(self, seq: ImuSequence, params: Optional[Mapping[str, Any]] = None,
+                   init_quat: Optional[np.ndarray] = None) -> Dict[str, Tensor]:
+        """One recording with parameters overridden by ``params`` (name -> scalar or (P,) values,
+        broadcast together); returns the filter's tensors with a leading (P,) dimension when any
+        is batched: ``quat`` (P, N, 4) and the signals."""
+        if params:
+            params = {k: (torch.as_tensor(v, dtype=self.dtype)[..., None]
+                          if isinstance(v, (list, tuple, np.ndarray, Tensor)) and np.ndim(v) == 1 else v)
+                      for k, v in params.items()}  # (P,) -> (P, 1): P parameter sets x 1 recording
+        quat, sig = self.quat_batch([seq], [init_quat], params)
+        batched = quat.dim() == 4
+        take = (lambda v: v[:, 0]) if batched else (lambda v: v[0])  # noqa: E731
+        out = {"quat": take(quat)}
+        out.update({k: take(v) for k, v in sig.items() if v.dim() >= (3 if batched else 2)})
         return out
 
+    def run_batch(self, seqs: Sequence[ImuSequence],
+                  init_quats: Sequence[Optional[np.ndarray]]) -> List[EstimatorOutput]:
+        """One :class:`EstimatorOutput` per recording, computed in one batched filter call
+        (what the evaluation runner uses)."""
+        quat, sig = self.quat_batch(seqs, init_quats)
+        res = []
+        for i, s in enumerate(seqs):
+            n = len(s)
+            res.append(EstimatorOutput(quat=quat[i, :n].cpu().numpy(),
+                                       signals={k: v[i, :n].cpu().numpy() for k, v in sig.items()
+                                                if v.dim() >= 2 and v.shape[0] == len(seqs)}))
+        return res
+
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
-        out = self.run_params(seq, None, init_quat)
-        quat = out.pop("quat").cpu().numpy()
-        return EstimatorOutput(quat=quat, signals={k: v.cpu().numpy() for k, v in out.items()})
+        return self.run_batch([seq], [init_quat])[0]
 
 
+@register("ecf", "classical")
 @dataclass
 class ClosedLoopECF(ClassicalEstimator):
     """Closed-loop Extended Complementary Filter, paper Section 2 (Eqs. 4-8); see
@@ -138,7 +223,7 @@ class ClosedLoopECF(ClassicalEstimator):
     m_min: float = 20.0  # uT
     m_max: float = 70.0  # uT
 
-    name: ClassVar[str] = "ecf"
+    method: ClassVar[str] = "ecf"
     tunable: ClassVar[Sequence[str]] = ("k_norm", "a_min")
     default_grid: ClassVar[Dict[str, list]] = {"k_norm": [0.05, 0.1, 0.2, 0.5, 1.0, 2.0],
                                                "a_min": [0.3, 1.0, 3.0]}
@@ -147,6 +232,7 @@ class ClosedLoopECF(ClassicalEstimator):
         return ecf(gyro, accel, dt, q0, mag=mag, **p)
 
 
+@register("mahony", "classical")
 @dataclass
 class Mahony(ClassicalEstimator):
     """Mahony explicit complementary filter with integral gyro-bias term; see
@@ -157,7 +243,7 @@ class Mahony(ClassicalEstimator):
     k_i: float = 0.3  # 1/s^2
     compat: bool = False
 
-    name: ClassVar[str] = "mahony"
+    method: ClassVar[str] = "mahony"
     tunable: ClassVar[Sequence[str]] = ("k_p", "k_i")
     default_grid: ClassVar[Dict[str, list]] = {"k_p": [0.1, 0.3, 1.0, 3.0], "k_i": [0.0, 0.01, 0.1, 0.3]}
 
@@ -165,6 +251,7 @@ class Mahony(ClassicalEstimator):
         return mahony(gyro, accel, dt, q0, mag=mag, k_p=p["k_p"], k_i=p["k_i"], compat=bool(p["compat"]))
 
 
+@register("madgwick", "classical")
 @dataclass
 class Madgwick(ClassicalEstimator):
     """Madgwick gradient-descent filter; see :func:`tcn_ahrs.filters.madgwick` (equal to
@@ -173,7 +260,7 @@ class Madgwick(ClassicalEstimator):
 
     beta: Optional[float] = None  # rad/s
 
-    name: ClassVar[str] = "madgwick"
+    method: ClassVar[str] = "madgwick"
     tunable: ClassVar[Sequence[str]] = ("beta",)
     default_grid: ClassVar[Dict[str, list]] = {"beta": [0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2]}
 
@@ -181,6 +268,7 @@ class Madgwick(ClassicalEstimator):
         return madgwick(gyro, accel, dt, q0, mag=mag, beta=p["beta"])
 
 
+@register("eskf", "classical")
 @dataclass
 class ESEKF(ClassicalEstimator):
     """Error-state EKF (attitude + gyro bias); see :func:`tcn_ahrs.filters.eskf`.
@@ -194,7 +282,7 @@ class ESEKF(ClassicalEstimator):
     init_att_std: float = 0.1  # rad
     init_bias_std: float = 0.01  # rad/s
 
-    name: ClassVar[str] = "eskf"
+    method: ClassVar[str] = "eskf"
     tunable: ClassVar[Sequence[str]] = ("accel_noise", "mag_noise")
     default_grid: ClassVar[Dict[str, list]] = {"accel_noise": [0.01, 0.03, 0.1, 0.3],
                                                "mag_noise": [0.01, 0.03, 0.1, 0.3]}
@@ -203,6 +291,7 @@ class ESEKF(ClassicalEstimator):
         return eskf(gyro, accel, dt, q0, mag=mag, robust=False, **p)
 
 
+@register("robust_eskf", "classical")
 @dataclass
 class RobustESEKF(ESEKF):
     """Adaptive-robust ES-EKF: Mahalanobis-gated observations (R inflation) and fading factor
@@ -219,7 +308,7 @@ class RobustESEKF(ESEKF):
     n_iter: int = 3
     plausible_window: float = 0.2  # s
 
-    name: ClassVar[str] = "robust_eskf"
+    method: ClassVar[str] = "robust_eskf"
 
     def _filter(self, gyro, accel, dt, q0, mag, p):
         p = dict(p)

@@ -14,6 +14,7 @@ from ..model.ahrs import LearnedAHRS
 from ..sequence import ImuSequence
 from ..validate import check_number
 from .base import EstimatorOutput
+from .registry import register
 
 
 def model_input(model: LearnedAHRS, seq: ImuSequence, device, what: str = "model") -> torch.Tensor:
@@ -95,6 +96,13 @@ class LearnedEstimator:
             for k in ("acc_trust", "mag_trust", "rest"):
                 sig[k] = out[k][0].cpu().double().numpy()
         return EstimatorOutput(quat=quat, signals=sig)
+
+
+@register("learned", "learned")
+def learned_estimator(ckpt: Union[str, Path], name: str = "Learned", device: Union[str, torch.device] = "cpu",
+                      reanchor: Optional[int] = None) -> LearnedEstimator:
+    """Registry factory: the checkpoint ``ckpt`` as the column ``name``."""
+    return LearnedEstimator(ckpt, name=name, device=device, reanchor=reanchor)
 
 
 class OnLearnedCalibration:

@@ -73,7 +73,8 @@ from ..datasets._common import matrix_to_quat as _matrix_to_quat
 from ..datasets._common import quat_conj as _quat_conj
 from ..datasets._common import quat_mul as _quat_mul
 from ..sequence import ImuSequence
-from .base import Estimator, EstimatorOutput
+from .base import EstimatorOutput
+from .registry import register
 
 __all__ = [
     "PeerUnavailable",
@@ -83,10 +84,6 @@ __all__ = [
     "AhrsMahonyEstimator",
     "AhrsEKFEstimator",
     "RIANNEstimator",
-    "PEER_CLASSES",
-    "PEER_GRIDS",
-    "peer_estimators",
-    "make_peer",
 ]
 
 INSTALL_HINT = "pip install -e .[peers]"
@@ -223,6 +220,9 @@ def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
 # ---------------------------------------------------------------------------
 
 
+# VQF: time constants of the accelerometer (inclination) and magnetometer (heading)
+# corrections, around the authors' (3 s, 9 s). 6 points; tauMag is ignored by 6D.
+@register("vqf", "peer", grid=[dict(tauAcc=a, tauMag=m) for a in (1.0, 3.0, 6.0) for m in (3.0, 9.0)])
 class VQFEstimator(_Peer):
     """VQF (Laidig & Seel, Information Fusion 2023), ``pip install vqf``.
 
@@ -276,6 +276,9 @@ class VQFEstimator(_Peer):
 # ---------------------------------------------------------------------------
 
 
+# Fusion: complementary gain (README default 0.5) x acceleration rejection angle.
+@register("imufusion", "peer",
+          grid=[dict(gain=g, acceleration_rejection=r) for g in (0.1, 0.5, 1.0) for r in (10.0, 20.0)])
 class ImufusionEstimator(_Peer):
     """x-io Technologies Fusion AHRS, ``pip install imufusion``.
 
@@ -407,6 +410,8 @@ class _AhrsFilter(_Peer):
         return EstimatorOutput(self._to_caller_frame(_to_enu(quat, self.frame), m_from_nav), signals)
 
 
+# Madgwick beta, rad/s (authors: 0.033 6D / 0.041 9D), log-spaced.
+@register("ahrs_madgwick", "peer", grid=[dict(gain=g) for g in (0.005, 0.01, 0.02, 0.041, 0.1, 0.2)])
 class AhrsMadgwickEstimator(_AhrsFilter):
     """Madgwick's gradient-descent filter from ``ahrs`` (``ahrs.filters.Madgwick``).
 
@@ -414,7 +419,7 @@ class AhrsMadgwickEstimator(_AhrsFilter):
     when ``None``. Frame NWU (x magnetic north, z up); specific force input.
     """
 
-    base_name = "madgwick"
+    base_name = "ahrs_madgwick"
     frame = "NWU"
 
     def __init__(self, axes: int = 9, gain: Optional[float] = None):
@@ -431,6 +436,8 @@ class AhrsMadgwickEstimator(_AhrsFilter):
         return f.updateMARG(q, gyr, acc, mag, dt=dt)
 
 
+# Mahony proportional / integral gains (authors 1.0 / 0.3).
+@register("ahrs_mahony", "peer", grid=[dict(k_P=p, k_I=i) for p in (0.3, 1.0, 3.0) for i in (0.03, 0.3)])
 class AhrsMahonyEstimator(_AhrsFilter):
     """Mahony's explicit complementary filter from ``ahrs`` (``ahrs.filters.Mahony``).
 
@@ -440,7 +447,7 @@ class AhrsMahonyEstimator(_AhrsFilter):
     signals: ``gyro_bias`` (N,3) rad/s (the filter's integral term ``b``).
     """
 
-    base_name = "mahony"
+    base_name = "ahrs_mahony"
     frame = "ENU"
 
     def __init__(self, axes: int = 9, k_P: float = 1.0, k_I: float = 0.3):
@@ -458,6 +465,9 @@ class AhrsMahonyEstimator(_AhrsFilter):
         return {"gyro_bias": np.array(f.b, dtype=np.float64)}
 
 
+# EKF spectral variances (var_gyr, var_acc, var_mag), authors (0.09, 0.25, 0.64):
+# trust in the gyro vs. the references.
+@register("ahrs_ekf", "peer", grid=[dict(noises=(g, a, a * 2.56)) for g in (0.01, 0.09) for a in (0.05, 0.25, 1.0)])
 class AhrsEKFEstimator(_AhrsFilter):
     """Quaternion EKF from ``ahrs`` (``ahrs.filters.EKF``), in its default NED frame.
 
@@ -469,7 +479,7 @@ class AhrsEKFEstimator(_AhrsFilter):
     down axis in both NED and ENU), so the specific force is negated.
     """
 
-    base_name = "ekf"
+    base_name = "ahrs_ekf"
     frame = "NED"
     accel_sign = -1.0
 
@@ -496,6 +506,8 @@ class AhrsEKFEstimator(_AhrsFilter):
 # ---------------------------------------------------------------------------
 
 
+# RIANN has no tunable parameters.
+@register("riann", "peer", axes=(6,))
 class RIANNEstimator(_Peer):
     """RIANN (Weber, Gühmann & Seel, AI 2021), 6-axis, ``pip install riann``.
 
@@ -532,71 +544,3 @@ class RIANNEstimator(_Peer):
         else:
             quat = self._model.predict(acc, gyr, fs)
         return EstimatorOutput(_to_enu(np.asarray(quat, dtype=np.float64), "ENU"), {})
-
-
-# ---------------------------------------------------------------------------
-# registry, defaults, tuning grids
-# ---------------------------------------------------------------------------
-
-PEER_CLASSES = {
-    "vqf": VQFEstimator,
-    "imufusion": ImufusionEstimator,
-    "madgwick": AhrsMadgwickEstimator,
-    "mahony": AhrsMahonyEstimator,
-    "ekf": AhrsEKFEstimator,
-    "riann": RIANNEstimator,
-}
-"""Peer key -> wrapper class (all take ``axes`` plus the keyword parameters below)."""
-
-PEER_AXES = {"vqf": (6, 9), "imufusion": (6, 9), "madgwick": (6, 9), "mahony": (6, 9),
-             "ekf": (6, 9), "riann": (6,)}
-
-PEER_GRIDS: Dict[str, List[Dict[str, Any]]] = {
-    # VQF: time constants of the accelerometer (inclination) and magnetometer (heading)
-    # corrections, around the authors' (3 s, 9 s). 6 points; tauMag is ignored by 6D.
-    "vqf": [dict(tauAcc=a, tauMag=m) for a in (1.0, 3.0, 6.0) for m in (3.0, 9.0)],
-    # Fusion: complementary gain (README default 0.5) x acceleration rejection angle.
-    "imufusion": [dict(gain=g, acceleration_rejection=r) for g in (0.1, 0.5, 1.0) for r in (10.0, 20.0)],
-    # Madgwick beta, rad/s (authors: 0.033 6D / 0.041 9D), log-spaced.
-    "madgwick": [dict(gain=g) for g in (0.005, 0.01, 0.02, 0.041, 0.1, 0.2)],
-    # Mahony proportional / integral gains (authors 1.0 / 0.3).
-    "mahony": [dict(k_P=p, k_I=i) for p in (0.3, 1.0, 3.0) for i in (0.03, 0.3)],
-    # EKF spectral variances (var_gyr, var_acc, var_mag), authors (0.09, 0.25, 0.64):
-    # trust in the gyro vs. the references.
-    "ekf": [dict(noises=(g, a, a * 2.56)) for g in (0.01, 0.09) for a in (0.05, 0.25, 1.0)],
-    # RIANN has no tunable parameters.
-    "riann": [dict()],
-}
-"""Small (<= 6 points) grids for tuning each peer on training recordings; each point is a
-dict of keyword arguments for the wrapper (the other parameters keep the defaults)."""
-
-
-def make_peer(key: str, axes: int, **params) -> Estimator:
-    """One peer by key (see :data:`PEER_CLASSES`) with the given parameters."""
-    if key not in PEER_CLASSES:
-        raise ValueError(f"unknown peer {key!r}; expected one of {sorted(PEER_CLASSES)}")
-    return PEER_CLASSES[key](axes=axes, **params)
-
-
-def peer_estimators(axes: int, params: Optional[Dict[str, Dict[str, Any]]] = None) -> List[Estimator]:
-    """The peers available for ``axes``-axis data (6 or 9), default parameters unless
-    ``params[key]`` gives keyword arguments for peer ``key``; peers whose library is not
-    installed are skipped with a warning (``pip install -e .[peers]``)."""
-    axes = _check_axes(axes)
-    params = dict(params or {})
-    unknown = set(params) - set(PEER_CLASSES)
-    if unknown:
-        raise ValueError(f"params: unknown peers {sorted(unknown)}; expected keys among {sorted(PEER_CLASSES)}")
-    out: List[Estimator] = []
-    missing = []
-    for key, cls in PEER_CLASSES.items():
-        if axes not in PEER_AXES[key]:
-            continue
-        try:
-            out.append(cls(axes=axes, **params.get(key, {})))
-        except PeerUnavailable:
-            missing.append(key)
-    if missing:
-        warnings.warn(f"peer estimators skipped (library not installed): {', '.join(missing)}; "
-                      f"install them with: {INSTALL_HINT}", stacklevel=2)
-    return out

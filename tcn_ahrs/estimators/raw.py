@@ -9,8 +9,10 @@ import torch
 from .. import so3
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
+from .registry import register
 
 
+@register("raw", "raw")
 class RawIntegration:
     """Integrates the raw gyro from ``init_quat`` at sample 0 (identity if ``None``), float64:
     ``R_k = R_0 exp(w_1 dt_1) ... exp(w_k dt_k)`` (paper Eq. 3, :func:`tcn_ahrs.so3.integrate`),
@@ -22,6 +24,8 @@ class RawIntegration:
 
     name = "Raw IMU"
 
+    def __init__(self, axes: Optional[int] = None):
+        pass  # ``axes`` is accepted for the registry's uniform factory; the gyro alone is used
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
         if init_quat is None:
             q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)

@@ -1,0 +1,168 @@
+"""The one registry of attitude estimators: method name -> how to build it.
+
+Every estimator that ``train``'s final table, ``evaluate``, ``compare``, ``benchmark`` and
+``crossval`` can run is registered here by the module that defines it, with the decorator
+:func:`register`::
+
+    @register("mahony", kind="classical")          # a ClassicalEstimator subclass
+    @dataclass
+    class Mahony(ClassicalEstimator): ...
+
+=============  ==================================================================================
+kind           what ``build(name, axes, **params)`` returns
+=============  ==================================================================================
+``raw``        :class:`~tcn_ahrs.estimators.raw.RawIntegration` (column ``Raw IMU``)
+``classical``  a :class:`~tcn_ahrs.estimators.classical.ClassicalEstimator` subclass (batched
+               torch filter; tuned over ``grid`` in one batched call per chunk)
+``peer``       a PyPI peer wrapper (:mod:`tcn_ahrs.estimators.peers`; raises
+               :class:`~tcn_ahrs.estimators.peers.PeerUnavailable` when its library is missing)
+``learned``    a checkpoint (:class:`~tcn_ahrs.estimators.learned.LearnedEstimator`, ``ckpt=``)
+=============  ==================================================================================
+
+Column names: ``<method><axes>d`` (``ecf9d`` uses the magnetometer, ``ecf6d`` does not),
+``Raw IMU``, or the label given to :func:`build`.
+
+Adding a method is one file: a module that registers its class, listed in the configs'
+``plugins`` (``plugins=[my_package.my_filter]``; :func:`load_plugins` imports it) and named in
+``methods``. The built-in modules (raw, classical, peers, learned) are imported on first use.
+"""
+from __future__ import annotations
+
+import importlib
+import warnings
+from dataclasses import dataclass
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+
+KINDS = ("raw", "classical", "peer", "learned")
+
+
+@dataclass(frozen=True)
+class Method:
+    """One registered method.
+
+    name:    registry name (``"ecf"``, ``"vqf"``, ``"ahrs_madgwick"``).
+    kind:    one of :data:`KINDS`.
+    factory: ``factory(axes=..., **params)`` -> estimator (``learned``: ``factory(ckpt=..., ...)``).
+    axes:    the axes it runs at (``(6,)`` for a 6-axis-only method such as RIANN).
+    grid:    tuning grid, a list of keyword-argument dicts (empty: not tunable).
+    """
+
+    name: str
+    kind: str
+    factory: Callable[..., Any]
+    axes: Tuple[int, ...] = (6, 9)
+    grid: Tuple[Dict[str, Any], ...] = ()
+
+    @property
+    def tunable(self) -> bool:
+        return len(self.grid) > 0
+
+
+_METHODS: Dict[str, Method] = {}
+_BUILTIN = ("raw", "classical", "peers", "learned")
+_loaded = False
+
+
+def register(name: str, kind: str, axes: Sequence[int] = (6, 9), grid: Optional[Sequence[Dict[str, Any]]] = None):
+    """Class (or factory) decorator registering ``name``. ``grid`` defaults to the grid
+    combinations of a classical class's ``default_grid``. Registering a name twice with a
+    different factory is an error (two modules claiming one column)."""
+    if kind not in KINDS:
+        raise ValueError(f"register({name!r}): kind must be one of {KINDS}, got {kind!r}")
+    bad = [a for a in axes if a not in (6, 9)]
+    if bad or not axes:
+        raise ValueError(f"register({name!r}): axes must be a non-empty subset of (6, 9), got {tuple(axes)}")
+
+    def deco(factory):
+        g = grid
+        if g is None and kind == "classical":
+            from ..tuning import grid_combinations
+
+            g = grid_combinations(factory.default_grid) if getattr(factory, "default_grid", None) else []
+        m = Method(name, kind, factory, tuple(int(a) for a in axes), tuple(dict(p) for p in (g or [])))
+        old = _METHODS.get(name)
+        if old is not None and old.factory is not factory and _qualname(old.factory) != _qualname(factory):
+            raise ValueError(f"method {name!r} is registered twice ({_qualname(old.factory)} and {_qualname(factory)})")
+        _METHODS[name] = m
+        if kind == "classical":
+            factory.method = name
+        return factory
+
+    return deco
+
+
+def _qualname(f) -> str:
+    return f"{getattr(f, '__module__', '?')}.{getattr(f, '__qualname__', repr(f))}"
+
+
+def _load_builtin() -> None:
+    global _loaded
+    if not _loaded:
+        _loaded = True
+        for mod in _BUILTIN:
+            importlib.import_module(f"{__package__}.{mod}")
+
+
+def load_plugins(modules: Optional[Sequence[str]]) -> None:
+    """Import the modules that register further methods (the configs' ``plugins`` list)."""
+    for mod in modules or []:
+        try:
+            importlib.import_module(str(mod))
+        except ImportError as e:
+            raise ValueError(f"plugins: cannot import {mod!r} ({e}); expected an importable module "
+                             "that registers estimators with tcn_ahrs.estimators.registry.register") from None
+
+
+def methods(kind: Optional[str] = None) -> Tuple[str, ...]:
+    """Registered method names (of one ``kind``), raw first, then classical, peer, learned, each
+    in registration order."""
+    _load_builtin()
+    kinds = KINDS if kind is None else (kind,)
+    return tuple(n for k in kinds for n, m in _METHODS.items() if m.kind == k)
+
+
+def get(name: str) -> Method:
+    _load_builtin()
+    if name not in _METHODS:
+        raise ValueError(f"unknown method {name!r}; expected one of {list(methods())} "
+                         "(or a module in plugins= that registers it)")
+    return _METHODS[name]
+
+
+def build(name: str, axes: Optional[int] = None, label: Optional[str] = None, **params):
+    """The estimator of method ``name`` at ``axes`` (None: the method's first) with keyword
+    ``params``; ``label`` renames its column."""
+    m = get(name)
+    if m.kind == "learned":
+        return m.factory(name=label or "Learned", **params)
+    ax = m.axes[-1] if axes is None else int(axes)
+    if ax not in m.axes:
+        raise ValueError(f"method {name!r} runs at axes {m.axes}, not {ax}")
+    est = m.factory(axes=ax, **params)
+    if label is not None:
+        if hasattr(type(est), "label"):
+            est.label = label
+        else:
+            est.name = label
+    return est
+
+
+def baseline_estimators(names: Optional[Sequence[str]], axes: int = 9) -> List[Any]:
+    """Baselines by name for ``train``'s and ``evaluate``'s tables: method names (``raw``,
+    ``ecf``, ``vqf``, ...) at the data's ``axes`` (or the method's own when it runs only at
+    others), or column names (``vqf6d``). Unavailable or unknown ones are skipped with a
+    warning (a missing baseline must not lose a trained model's evaluation)."""
+    out = []
+    for n in names or []:
+        n = str(n)
+        try:
+            ax = int(axes)
+            if n not in methods() and n[-2:] in ("6d", "9d") and n[:-2] in methods():
+                n, ax = n[:-2], int(n[-2])
+            m = get(n)
+            if m.kind == "learned":
+                raise ValueError("learned models are given as checkpoints, not as baselines")
+            out.append(build(n, ax if ax in m.axes else m.axes[0]))
+        except Exception as e:  # noqa: BLE001
+            warnings.warn(f"baseline {n!r} unavailable, skipped: {type(e).__name__}: {e}")
+    return out
