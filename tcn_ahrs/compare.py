@@ -395,17 +395,17 @@ class _Timed:
             raise AttributeError(k)
         return getattr(self.inner, k)
 
-    def run(self, seq, init_quat=None):
+    def run(self, seq, init_quat=None, init_index=0):
         t0 = time.perf_counter()
-        r = self.inner.run(seq, init_quat)
+        r = self.inner.run(seq, init_quat, init_index)
         print(f"  {self.inner.name} on {seq.name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         return r
 
 
 def _add_run_batch():
-    def run_batch(self, seqs, init_quats):
+    def run_batch(self, seqs, init_quats, init_indices=None):
         t0 = time.perf_counter()
-        r = self.inner.run_batch(seqs, init_quats)
+        r = self.inner.run_batch(seqs, init_quats, init_indices)
         print(f"  {self.inner.name} on {len(seqs)} recordings (batched): {time.perf_counter() - t0:.1f} s",
               file=sys.stderr)
         return r

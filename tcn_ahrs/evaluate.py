@@ -2,12 +2,12 @@
 
 For every recording and every estimator:
 
-1. the estimator runs on the recording (``est.run(seq, init_quat)``, or once on all recordings
-   with ``est.run_batch(seqs, init_quats)`` when it has that method); an estimator with
-   ``axes == 6`` gets the recording without magnetometer and is scored as 6-axis; ``init_quat`` is the
-   ground-truth attitude at sample 0 if that sample has valid ground truth, otherwise the
-   ground truth at the first valid sample, applied at sample 0
-   (:func:`tcn_ahrs.estimators.base.initial_quat`). The difference this leaves at the first
+1. the estimator runs on the recording (``est.run(seq, init_quat, init_index)``, or once on all
+   recordings with ``est.run_batch(seqs, init_quats, init_indices)`` when it has that method);
+   an estimator with ``axes == 6`` gets the recording without magnetometer and is scored as
+   6-axis; ``init_index`` is the first sample with valid ground truth and ``init_quat`` its
+   ground-truth attitude (:func:`tcn_ahrs.estimators.base.initial_state`; what each estimator
+   does with them: :class:`~tcn_ahrs.estimators.base.Estimator`). The difference this leaves at the first
    scored sample is removed for AAE/AYE by their alignment (:mod:`tcn_ahrs.metrics`); BROAD's
    errors are never aligned (BROAD trials start with a rest phase whose ground truth is valid);
 2. the metrics of :func:`tcn_ahrs.metrics.sequence_metrics` are computed on ``seq.scored()``;
@@ -50,7 +50,7 @@ from typing import Dict, Iterable, List, Optional, Sequence
 
 import numpy as np
 
-from .estimators.base import initial_quat
+from .estimators.base import initial_state
 from .metrics import attitude_errors, align_to_first, broad_errors, sequence_metrics
 from .sequence import ImuSequence
 
@@ -167,7 +167,8 @@ def evaluate(
                 warnings.warn(f"axes=9 requested but recording {seq.name!r} has no magnetometer; "
                               "evaluating it as 6-axis")
             views.append(seq)
-    q0s = [initial_quat(seq) for seq in sequences]
+    inits = [initial_state(seq) for seq in sequences]
+    k0s, q0s = [k for k, _ in inits], [q for _, q in inits]
     if out is not None and trajectories:
         for seq in sequences:
             valid = seq.quat_valid
@@ -180,14 +181,14 @@ def evaluate(
         if hasattr(est, "run_batch") and len({v.has_mag for v in est_views}) == 1:
             # all recordings in one (padded) filter call; run time split evenly over them
             t0 = _time.perf_counter()
-            batched = est.run_batch(est_views, q0s)
+            batched = est.run_batch(est_views, q0s, k0s)
             batch_time = (_time.perf_counter() - t0) / max(1, len(sequences))
         for i, (seq, seq_in) in enumerate(zip(sequences, est_views)):
             if batched is not None:
                 res, run_time = batched[i], batch_time
             else:
                 t0 = _time.perf_counter()
-                res = est.run(seq_in, q0s[i])
+                res = est.run(seq_in, q0s[i], k0s[i])
                 run_time = _time.perf_counter() - t0
             quat = np.asarray(res.quat, dtype=np.float64)
             if quat.shape != (len(seq), 4):

@@ -185,7 +185,7 @@ class _Fixed:
         if axes is not None:
             self.axes = axes
 
-    def run(self, seq, init_quat=None):
+    def run(self, seq, init_quat=None, init_index=0):
         return EstimatorOutput(self.quat.copy(), {})
 
 
@@ -209,7 +209,7 @@ def test_estimator_axes_6_gets_6_axis_view():
     seen = {}
 
     class Spy(_Fixed):
-        def run(self, s, init_quat=None):
+        def run(self, s, init_quat=None, init_index=0):
             seen[self.name] = s.has_mag
             return super().run(s, init_quat)
 

@@ -40,7 +40,7 @@ class BiasedGyro:
         self.bias = np.asarray(bias, dtype=float)
         self._raw = RawIntegration()
 
-    def run(self, seq, init_quat=None):
+    def run(self, seq, init_quat=None, init_index=0):
         from dataclasses import replace
         return self._raw.run(replace(seq, gyro=seq.gyro + self.bias, meta={}), init_quat)
 
@@ -50,7 +50,7 @@ class ConstantBodyOffset:
 
     name = "Offset 2deg"
 
-    def run(self, seq, init_quat=None):
+    def run(self, seq, init_quat=None, init_index=0):
         gt = np.where(np.isfinite(seq.quat), seq.quat, [1.0, 0, 0, 0])
         r = Rotation.from_quat(np.concatenate([gt[:, 1:], gt[:, :1]], 1)) * Rotation.from_euler("x", 2.0, degrees=True)
         q = quat_xyzw_to_wxyz(r.as_quat())
@@ -150,7 +150,7 @@ def test_errors_and_print_table(sequences):
     class Broken:
         name = "broken"
 
-        def run(self, seq, init_quat=None):
+        def run(self, seq, init_quat=None, init_index=0):
             return EstimatorOutput(quat=np.zeros((3, 4)))
 
     with pytest.raises(ValueError, match="broken.*spin_z"):
@@ -161,3 +161,38 @@ def test_errors_and_print_table(sequences):
     text = buf.getvalue()
     assert "Raw IMU — attitude errors in degrees" in text and "Average" in text and "tumble" in text
     assert max(len(line) for line in text.splitlines()) < 100
+
+
+def test_runner_says_where_the_estimate_starts_and_the_learned_model_reads_no_ground_truth():
+    """The runner hands every estimator the first valid ground-truth sample and its attitude;
+    the learned model starts its filter there from that alone: removing the recording's ground
+    truth (after the runner read it) changes nothing."""
+    from dataclasses import replace
+
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.estimators.learned import LearnedEstimator
+    from tcn_ahrs.model.ahrs import LearnedAHRS
+
+    seq = simulate("slow_rotation", 6.0, 50.0, seed=4)
+    valid = seq.quat_valid.copy()
+    valid[:40] = False
+    seq = replace(seq, quat_valid=valid, meta=dict(seq.meta))
+    seen = {}
+
+    class Spy(RawIntegration):
+        name = "spy"
+
+        def run(self, s, init_quat=None, init_index=0):
+            seen.update(index=init_index, quat=init_quat)
+            return super().run(s, init_quat, init_index)
+
+    evaluate([Spy()], [seq], verbose=False)
+    assert seen["index"] == 40
+    np.testing.assert_allclose(seen["quat"], seq.quat[40])
+    est = LearnedEstimator(LearnedAHRS(axes=9, tcn={"channels": [4, 4, 4, 4]}))
+    with_gt = est.run(seq, seq.quat[40], 40).quat
+    blind = replace(seq, quat=None, quat_valid=None, score_mask=None, meta=dict(seq.meta))
+    np.testing.assert_array_equal(est.run(blind, seq.quat[40], 40).quat, with_gt)
+    assert np.abs(with_gt[40] - seq.quat[40]).max() < 1e-5  # it started there
+    with pytest.raises(ValueError, match="init_index"):
+        est.run(seq, seq.quat[40], len(seq))

@@ -8,7 +8,7 @@ The evaluation runner (:mod:`tcn_ahrs.evaluate`) takes any list of estimators.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Dict, Optional, Protocol, runtime_checkable
+from typing import Dict, Optional, Protocol, Tuple, runtime_checkable
 
 import numpy as np
 
@@ -30,25 +30,41 @@ class EstimatorOutput:
 
 @runtime_checkable
 class Estimator(Protocol):
-    """Anything with a ``name`` and a ``run`` method.
+    """What the evaluation runner (:func:`tcn_ahrs.evaluate.evaluate`) calls.
 
-    ``init_quat`` (4,) is the attitude at sample 0 when the caller knows it (e.g. ground truth
-    at the first sample); estimators that can initialise themselves from the accelerometer
-    and magnetometer may ignore it when it is ``None``.
+    Attributes:
+        name:  column name (``ecf9d``, ``Raw IMU``, a checkpoint label).
+        axes:  6 or 9 (optional; 6: the runner hands it the recording without magnetometer).
+        heading_free: True for estimators with no heading reference (scored on inclination only).
+
+    ``run(seq, init_quat, init_index)``: the caller says where and how the estimate starts —
+    ``init_quat`` (4,) is the attitude at sample ``init_index`` (the runner: the first sample
+    with valid ground truth, :func:`initial_state`), or ``None`` (the estimator initialises
+    itself). Every estimator sees the whole recording; none reads its ground truth. The learned
+    model starts its filter at ``init_index`` (its networks see the samples before, causally);
+    the classical filters and raw integration apply ``init_quat`` at sample 0 — the samples
+    before ``init_index`` have no ground truth and are never scored, and on the datasets where
+    ``init_index > 0`` (BROAD) the sensor rests until then. ``run_batch(seqs, init_quats,
+    init_indices)`` (optional) runs many recordings at once.
     """
 
     name: str
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
         ...
 
 
-def initial_quat(seq: ImuSequence) -> Optional[np.ndarray]:
-    """Ground-truth attitude at the first sample with valid ground truth, else ``None``.
-
-    Estimators that need an initial attitude receive it at that sample; earlier samples
-    (no ground truth) are not scored, so only the attitude from that sample on matters.
-    """
+def initial_state(seq: ImuSequence) -> Tuple[int, Optional[np.ndarray]]:
+    """``(index, attitude)``: the first sample with valid ground truth and its attitude, or
+    ``(0, None)`` without ground truth. What the runner and the tuner hand to ``run``."""
     if seq.quat is None or not seq.quat_valid.any():
-        return None
-    return seq.quat[int(np.argmax(seq.quat_valid))].copy()
+        return 0, None
+    k = int(np.argmax(seq.quat_valid))
+    return k, seq.quat[k].copy()
+
+
+def initial_quat(seq: ImuSequence) -> Optional[np.ndarray]:
+    """Ground-truth attitude at the first sample with valid ground truth, else ``None``
+    (:func:`initial_state`'s attitude)."""
+    return initial_state(seq)[1]

@@ -191,10 +191,11 @@ class ClassicalEstimator:
         out.update({k: take(v) for k, v in sig.items() if v.dim() >= (3 if batched else 2)})
         return out
 
-    def run_batch(self, seqs: Sequence[ImuSequence],
-                  init_quats: Sequence[Optional[np.ndarray]]) -> List[EstimatorOutput]:
+    def run_batch(self, seqs: Sequence[ImuSequence], init_quats: Sequence[Optional[np.ndarray]],
+                  init_indices: Optional[Sequence[int]] = None) -> List[EstimatorOutput]:
         """One :class:`EstimatorOutput` per recording, computed in one batched filter call
-        (what the evaluation runner uses)."""
+        (what the evaluation runner uses); ``init_quats`` are applied at sample 0 (see
+        :class:`~tcn_ahrs.estimators.base.Estimator` for ``init_indices``)."""
         quat, sig = self.quat_batch(seqs, init_quats)
         res = []
         for i, s in enumerate(seqs):
@@ -204,8 +205,9 @@ class ClassicalEstimator:
                                                 if v.dim() >= 2 and v.shape[0] == len(seqs)}))
         return res
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
-        return self.run_batch([seq], [init_quat])[0]
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
+        return self.run_batch([seq], [init_quat], [init_index])[0]
 
 
 @register("ecf", "classical")

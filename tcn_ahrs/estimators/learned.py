@@ -33,8 +33,9 @@ class LearnedEstimator:
     learned closed loop (default model; sample by sample, float64) or the paper's open-loop ECF
     (feed-forward).
 
-    The networks see every sample (causally); the filter and the integration start at the first
-    sample with valid ground truth from ``init_quat`` (identity when ``None``).
+    The networks see every sample (causally); the filter and the integration start at sample
+    ``init_index`` from ``init_quat`` (identity when ``None``); the runner passes the first
+    sample with valid ground truth.
 
     Output signals (N, 3), body frame:
         ``gyro_correction`` ω̂ − y_gyr (rad/s; everything the model adds to the raw gyro),
@@ -62,7 +63,8 @@ class LearnedEstimator:
     def axes(self) -> int:
         return self.model.axes
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
         trained = getattr(self.model, "trained_rate_hz", None)
         if trained and abs(float(seq.rate) / trained - 1.0) > 0.05:
             warnings.warn(f"{self.name}: recording {seq.name!r} is at {seq.rate:.4g} Hz but the model was trained "
@@ -70,9 +72,7 @@ class LearnedEstimator:
                           "(resample the recording, or train at its rate)", stacklevel=2)
         imu = model_input(self.model, seq, self.device, f"model {self.ckpt_path or ''}")
         dt = torch.as_tensor(seq.dt, dtype=torch.float32, device=self.device)[None]
-        start = 0
-        if seq.quat_valid is not None and seq.quat_valid.any():
-            start = int(np.argmax(seq.quat_valid))
+        start = check_number(init_index, "init_index", int, 0, high=len(seq))
         if init_quat is None:
             q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
         else:
@@ -132,5 +132,6 @@ class OnLearnedCalibration:
         return replace(seq, gyro=f("gyro"), accel=f("acc"), mag=f("mag") if axes == 9 else seq.mag,
                        check_units=False)
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
-        return self.inner.run(self.calibrated(seq), init_quat)
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
+        return self.inner.run(self.calibrated(seq), init_quat, init_index)

@@ -249,7 +249,8 @@ class VQFEstimator(_Peer):
             self.name += "_offline"
         self._vqf = _import_peer("vqf", "vqf", self.name)
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
         # VQF's C++ binding wants C-contiguous float64 (N,3) buffers: slices/float32 break it.
         gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
@@ -339,7 +340,8 @@ class ImufusionEstimator(_Peer):
         mag = None if mag is None else np.ascontiguousarray(mag, dtype=np.float64)
         return gyr, acc, mag
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
         gyr, acc, mag = self.fusion_inputs(seq)
         ahrs = self.make_ahrs(seq.rate)
         dt = seq.dt
@@ -394,7 +396,8 @@ class _AhrsFilter(_Peer):
     def _signals(self, f) -> Dict[str, np.ndarray]:
         return {}
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
         mag = _mag_of(seq, self.axes, self.name)
         f = self._make(seq, mag)
         n = len(seq)
@@ -533,7 +536,8 @@ class RIANNEstimator(_Peer):
         super().__init__(6, dict(onnx_path=str(onnx_path), streaming=bool(streaming)))
         self._model = importlib.import_module("riann.riann").RIANN(str(onnx_path))
 
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
         gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
         fs = 1.0 / _constant_period(seq, self.name)

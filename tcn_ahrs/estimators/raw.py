@@ -26,7 +26,8 @@ class RawIntegration:
 
     def __init__(self, axes: Optional[int] = None):
         pass  # ``axes`` is accepted for the registry's uniform factory; the gyro alone is used
-    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None) -> EstimatorOutput:
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
+            init_index: int = 0) -> EstimatorOutput:
         if init_quat is None:
             q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
         else:
