@@ -29,8 +29,13 @@ Kalman filter", 2017, Sec. 5-7, which the paper follows):
 * Kalman gain Eq. 12, Joseph form Eq. 17, injection Eq. 16 (``q <- q (x) exp(dtheta)``,
   ``b <- b + db``), reset Eqs. 18-20 (``P <- G P G^T``, ``G = diag(I - [dtheta/2]x, I)``).
 
+The loop is :func:`predict`, then per observation (:func:`gravity_observation`,
+:func:`heading_observation`) the one Kalman update (:func:`tcn_ahrs.filters.kalman.kalman_update`)
+and :func:`correct`.
+
 Adaptive-robust variant after the paper ``adaptive-robust-ckf-uwb-imu`` (``../shared/papers``)
-(Eqs. 39-42, Algorithm 1), per observation (gravity direction, then heading):
+(Eqs. 39-42, Algorithm 1; :mod:`tcn_ahrs.filters.robust`), per observation (gravity direction,
+then heading):
 
 * ``gamma = r^T S^-1 r`` (Eq. 39), ``S = H P H^T + R``, compared with the chi-square quantile
   ``chi2.ppf(1 - alpha, dof)`` (Eq. 40; dof 3 for the gravity direction - conservative, as the
@@ -53,9 +58,8 @@ Signals: ``acc_gated``/``mag_gated`` (R inflated), ``mahalanobis_acc``/``mahalan
 """
 from __future__ import annotations
 
-import functools
 import math
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import torch
 from torch import Tensor
@@ -63,48 +67,69 @@ from torch import Tensor
 from .. import so3
 from ..conventions import GRAVITY
 from .common import converter_like, flatten_batch, normalize, unflatten
+from .kalman import chi2_threshold, kalman_update, symmetrize
+from .robust import robust_inflation, rolling_max
+
+__all__ = ["eskf", "chi2_threshold", "predict", "gravity_observation", "heading_observation", "correct"]
 
 
-@functools.lru_cache(maxsize=64)
-def chi2_threshold(alpha: float, dof: int) -> float:
-    """Upper ``alpha`` quantile of the chi-square distribution (``Pr(gamma < thr) = 1 - alpha``)."""
-    from scipy.stats import chi2
+def predict(rot: Tensor, bias: Tensor, P: Tensor, gyro: Tensor, dt: Tensor, q_rate: Tensor) -> Tuple[Tensor, Tensor]:
+    """Prediction (Eqs. 6-8, 10): ``R <- R exp((omega - b) dt)``, ``P <- F P F^T + Q dt``.
 
-    return float(chi2.ppf(1.0 - alpha, dof))
-
-
-def _sym(p: Tensor) -> Tensor:
-    return 0.5 * (p + p.transpose(-1, -2))
-
-
-def _robust_inflation(r, hph, rr, plausible, thr: float, n_iter: int, max_fading: float):
-    """Algorithm 1 lines 3-9 for a batch of observations.
-
-    Args: residual r (B, m), H P H^T (B, m, m), R (B, m, m), plausible (B,) bool, threshold.
-    Returns: gamma0 (B,) before inflation, lam_p (B,) factor on P, lam_r (B,) factor on R.
+    rot (B, 3, 3) nav_from_body, bias (B, 3) rad/s, P (B, 6, 6), gyro (B, 3) rad/s, dt (B, 1) s,
+    q_rate (B, 6) = [sigma_g^2, sigma_bw^2] per axis (Q / dt). Returns (rot, P).
     """
-    lam_p = torch.ones_like(r[:, 0])
-    lam_r = torch.ones_like(r[:, 0])
-    gamma0 = None
-    for it in range(n_iter + 1):
-        s = lam_p[:, None, None] * hph + lam_r[:, None, None] * rr
-        gamma = (r * torch.linalg.solve(s, r[..., None])[..., 0]).sum(-1)
-        if it == 0:
-            gamma0 = gamma
-        if it == n_iter:
-            break
-        f = torch.where(gamma >= thr, gamma / thr, torch.ones_like(gamma))
-        lam_p = torch.where(plausible, (lam_p * f).clamp(max=max_fading), lam_p)
-        lam_r = torch.where(plausible, lam_r, lam_r * f)
-    return gamma0, lam_p, lam_r
+    inc = so3.exp((gyro - bias) * dt)
+    eye3 = torch.eye(3, dtype=P.dtype, device=P.device).expand_as(inc)
+    zeros3 = torch.zeros_like(inc)
+    F = torch.cat([torch.cat([inc.transpose(-1, -2), -eye3 * dt[..., None]], -1),
+                   torch.cat([zeros3, eye3], -1)], -2)
+    return rot @ inc, F @ P @ F.transpose(-1, -2) + torch.diag_embed(q_rate * dt)
 
 
-def _rolling_max(x: Tensor, w: int) -> Tensor:
-    """Causal running maximum over the last ``w`` samples of (B, N)."""
-    if w <= 1:
-        return x
-    xp = torch.nn.functional.pad(x[:, None], (w - 1, 0), value=float("-inf"))
-    return torch.nn.functional.max_pool1d(xp, kernel_size=w, stride=1)[:, 0]
+def gravity_observation(rot: Tensor, acc_unit: Tensor) -> Tuple[Tensor, Tensor]:
+    """Accelerometer as the gravity direction: residual ``a/|a| - R^T up`` (B, 3) and
+    ``H = [[R^T up]x, 0]`` (B, 3, 6)."""
+    h = rot[:, 2, :]  # R^T up
+    return acc_unit - h, torch.cat([so3.hat(h), torch.zeros_like(rot)], -1)
+
+
+def heading_observation(rot: Tensor, mag: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+    """Magnetometer as the heading of the levelled field: residual ``atan2(v_y, v_x) - pi/2``
+    (wrapped, (B, 1)) of ``v = R m``, ``H = [-(R^T e_z)^T, 0]`` (B, 1, 6) and the factor
+    ``|m|^2 / |m_h|^2`` (B,) on the heading variance (a steep field's heading is less certain)."""
+    v = (rot @ mag[..., None])[..., 0]
+    vh2 = (v[:, :2] ** 2).sum(-1).clamp_min(1e-12)
+    r = torch.atan2(v[:, 1], v[:, 0]) - math.pi / 2
+    r = torch.remainder(r + math.pi, 2 * math.pi) - math.pi
+    H = torch.cat([-rot[:, 2:3, :], torch.zeros_like(rot[:, :1, :])], -1)
+    return r[:, None], H, (v * v).sum(-1) / vh2
+
+
+def correct(rot: Tensor, bias: Tensor, P: Tensor, dx: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+    """Injection (Eq. 16: ``R <- R exp(dtheta)``, ``b <- b + db``) and reset (Eqs. 19-20:
+    ``P <- G P G^T``, ``G = diag(I - [dtheta/2]x, I)``)."""
+    dth = dx[:, :3]
+    eye3 = torch.eye(3, dtype=P.dtype, device=P.device).expand_as(rot)
+    zeros3 = torch.zeros_like(rot)
+    G = torch.cat([torch.cat([eye3 - so3.hat(0.5 * dth), zeros3], -1), torch.cat([zeros3, eye3], -1)], -2)
+    return rot @ so3.exp(dth), bias + dx[:, 3:], symmetrize(G @ P @ G.transpose(-1, -2))
+
+
+def _observe(rot, bias, P, r, H, R, plausible, thr: float, robust: bool, n_iter: int, max_fading: float):
+    """One observation: (robust: gate and inflate, Eqs. 39-42), Kalman update (Eqs. 12, 15, 17),
+    injection and reset. Returns rot, bias, P, gamma, lam_p, lam_r (the last three None unless
+    robust)."""
+    hph = H @ P @ H.transpose(-1, -2)
+    gamma = lam_p = lam_r = None
+    if robust:
+        gamma, lam_p, lam_r = robust_inflation(r, hph, R, plausible, thr, n_iter, max_fading)
+        P = lam_p[:, None, None] * P  # Eq. 42 (fading factor)
+        R = lam_r[:, None, None] * R  # Eq. 41
+        hph = lam_p[:, None, None] * hph
+    dx, P = kalman_update(P, r, H, R, hph + R)
+    rot, bias, P = correct(rot, bias, P, dx)
+    return rot, bias, P, gamma, lam_p, lam_r
 
 
 def eskf(
@@ -189,8 +214,6 @@ def eskf(
     p_ = dict(zip(names, flat[11:]))
     B, n = gyro.shape[0], gyro.shape[1]
     eye3 = torch.eye(3, dtype=dtype, device=gyro.device).expand(B, 3, 3)
-    eye6 = torch.eye(6, dtype=dtype, device=gyro.device).expand(B, 6, 6)
-    zeros3 = torch.zeros(B, 3, 3, dtype=dtype, device=gyro.device)
 
     a_hat = normalize(accel)
     var_g = p_["gyro_noise"] ** 2
@@ -202,12 +225,12 @@ def eskf(
     # during vigorous motion |a| crosses g now and then while its direction is far from gravity,
     # and such a crossing must not be read as "observation fine, state abnormal" (fading).
     win = max(1, int(round(plausible_window / float(dt[:, 1:].median())))) if n > 1 else 1
-    acc_plaus = _rolling_max((a_norm_all - gravity).abs() / p_["acc_norm_tol"][:, None], win) < 1.0
+    acc_plaus = rolling_max((a_norm_all - gravity).abs() / p_["acc_norm_tol"][:, None], win) < 1.0
     if mag is not None:
         var_mag = p_["mag_noise"][:, None] ** 2 / dt
         mag_dev = torch.maximum((m_norm_all - mag_norm_ref[:, None]).abs() / p_["mag_norm_tol"][:, None],
                                 (dip_all - dip_ref[:, None]).abs() / p_["dip_tol"][:, None])
-        mag_plaus = _rolling_max(mag_dev, win) < 1.0
+        mag_plaus = rolling_max(mag_dev, win) < 1.0
     thr_acc = chi2_threshold(alpha, 3)
     thr_mag = chi2_threshold(alpha, 1)
 
@@ -217,61 +240,21 @@ def eskf(
     b = b.clone()
     qd_rate = torch.cat([var_g[:, None].expand(B, 3), var_bw[:, None].expand(B, 3)], -1)  # Q / dt (Eq. 10)
 
-    def update(rot, b, P, r, H, Rm, plausible, thr):
-        """One Kalman update with error injection and reset; returns new rot, b, P and signals."""
-        hph = H @ P @ H.transpose(-1, -2)
-        if robust:
-            gamma, lam_p, lam_r = _robust_inflation(r, hph, Rm, plausible, thr, n_iter, max_fading)
-            P = lam_p[:, None, None] * P  # Eq. 42 (fading factor)
-            Rm = lam_r[:, None, None] * Rm  # Eq. 41
-            hph = lam_p[:, None, None] * hph
-        else:
-            gamma = lam_p = lam_r = None
-        S = hph + Rm
-        if S.shape[-1] == 1:
-            K = (P @ H.transpose(-1, -2)) / S  # Eq. 12, scalar observation
-        else:
-            K = torch.linalg.solve(S, H @ P).transpose(-1, -2)  # Eq. 12 (S symmetric)
-        dx = (K @ r[..., None])[..., 0]  # Eq. 15
-        IKH = eye6 - K @ H
-        P = IKH @ P @ IKH.transpose(-1, -2) + K @ Rm @ K.transpose(-1, -2)  # Eq. 17 (Joseph)
-        dth = dx[:, :3]
-        rot = rot @ so3.exp(dth)  # Eq. 16: q <- q (x) q{dtheta}
-        b = b + dx[:, 3:]
-        G = torch.cat([torch.cat([eye3 - so3.hat(0.5 * dth), zeros3], -1), eye_bottom], -2)  # Eq. 20
-        P = _sym(G @ P @ G.transpose(-1, -2))  # Eq. 19
-        return rot, b, P, gamma, lam_p, lam_r
-
-    eye_bottom = torch.cat([zeros3, eye3], -1)
-    zeros13 = torch.zeros(B, 1, 3, dtype=dtype, device=gyro.device)
     # The nominal attitude is kept as a rotation matrix inside the loop (one exp per step
     # serves both the nominal propagation and F); quaternions are formed once at the end.
     rot = so3.quat_to_matrix(q)
     rots, bs, variances = [rot], [b], [torch.diagonal(P, dim1=-2, dim2=-1)[:, :3]]
     sig = {k: [] for k in ("mahalanobis_acc", "mahalanobis_mag", "fading", "acc_gated", "mag_gated")}
     for k in range(1, n):
-        d = dt[:, k, None]
-        # --- prediction (Eqs. 6-8, 10)
-        w = gyro[:, k] - b
-        inc = so3.exp(w * d)
-        rot = rot @ inc
-        F = torch.cat([torch.cat([inc.transpose(-1, -2), -eye3 * d[..., None]], -1), eye_bottom], -2)
-        P = F @ P @ F.transpose(-1, -2) + torch.diag_embed(qd_rate * d)
-        # --- accelerometer: gravity direction
-        h = rot[:, 2, :]  # R^T up
-        r = a_hat[:, k] - h
-        H = torch.cat([so3.hat(h), zeros3], -1)
+        rot, P = predict(rot, b, P, gyro[:, k], dt[:, k, None], qd_rate)
+        r, H = gravity_observation(rot, a_hat[:, k])
         Ra = eye3 * var_acc[:, k, None, None]
-        rot, b, P, g_a, lp_a, lr_a = update(rot, b, P, r, H, Ra, acc_plaus[:, k], thr_acc)
-        # --- magnetometer: heading of the levelled field
+        rot, b, P, g_a, lp_a, lr_a = _observe(rot, b, P, r, H, Ra, acc_plaus[:, k], thr_acc, robust, n_iter, max_fading)
         if mag is not None:
-            v = (rot @ mag[:, k, :, None])[..., 0]
-            vh2 = (v[:, :2] ** 2).sum(-1).clamp_min(1e-12)
-            r = torch.atan2(v[:, 1], v[:, 0]) - math.pi / 2
-            r = torch.remainder(r + math.pi, 2 * math.pi) - math.pi
-            H = torch.cat([-rot[:, 2:3, :], zeros13], -1)  # (B, 1, 6)
-            Rm = (var_mag[:, k] * (v * v).sum(-1) / vh2)[:, None, None]
-            rot, b, P, g_m, lp_m, lr_m = update(rot, b, P, r[:, None], H, Rm, mag_plaus[:, k], thr_mag)
+            r, H, steep = heading_observation(rot, mag[:, k])
+            Rm = (var_mag[:, k] * steep)[:, None, None]
+            rot, b, P, g_m, lp_m, lr_m = _observe(rot, b, P, r, H, Rm, mag_plaus[:, k], thr_mag, robust, n_iter,
+                                                  max_fading)
         rots.append(rot)
         bs.append(b)
         variances.append(torch.diagonal(P, dim1=-2, dim2=-1)[:, :3])
