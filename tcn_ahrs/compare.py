@@ -427,8 +427,9 @@ def _subset(results: dict, names: Sequence[str]) -> dict:
 
 
 def compare_markdown(results: dict) -> str:
-    """results.md of a comparison: Table 1/2 layout (AAE, AYE), inclination, BROAD total/heading/
-    inclination, group averages, ablation (Table 3 layout), tuned parameters."""
+    """results.md of a comparison: averages, one table per metric (AAE, AYE; inclination or
+    BROAD total/heading/inclination; methods in rows), group averages, ablation (the paper's
+    Table 3 columns), tuned parameters."""
     from .evaluate import LABELS, _has, group_table, markdown_table
 
     title = results.get("dataset") or "comparison"
@@ -436,11 +437,11 @@ def compare_markdown(results: dict) -> str:
     parts = [f"# Comparison: {title}\n",
              f"Recordings: {len(results['recordings'])}. AAE / AYE in degrees (RMS over scored samples, "
              f"aligned at the first scored sample: {'yes' if results.get('align', True) else 'no'}). "
-             "Bold: best in the row. `—`: not defined"
+             "Bold: best in the column. `—`: not defined"
              + (f" (heading-free estimators {', '.join(hf)} are scored on inclination only)" if hf else "")
              + ".\n",
              "## Averages over recordings (deg)\n", averages_markdown(results),
-             "\n## AAE / AYE (paper Tables 1/2 layout)\n",
+             "\n## AAE / AYE (methods in rows, recordings in columns)\n",
              markdown_table(results, ("aae_deg", "aye_deg"))]
     broad = _has(results, "total_deg")
     if broad:
@@ -452,12 +453,12 @@ def compare_markdown(results: dict) -> str:
     if any(m.get("groups") for m in results["methods"].values()):
         keys = ("total_deg", "heading_deg", "inclination_deg") if broad else ("aae_deg", "aye_deg", "inclination_deg")
         key = "total_deg" if broad else "aae_deg"
-        parts += [f"\n## Group averages: {LABELS.get(key, key)} (rows groups, columns methods)\n",
-                  group_table(results, (key,)).replace(f" {LABELS.get(key, key)} |", " |"),
+        parts += [f"\n## Group averages: {LABELS.get(key, key)} (rows methods, columns groups)\n",
+                  group_table(results, (key,)),
                   "\n## Group averages: all metrics\n", group_table(results, keys)]
     abl = results.get("ablation") or []
     if abl:
-        parts += ["\n## Ablation (paper Table 3 layout): AAE / AYE\n",
+        parts += ["\n## Ablation (paper Table 3): AAE / AYE\n",
                   markdown_table(_subset(results, abl), ("aae_deg", "aye_deg"))]
     tun = results.get("tuning") or {}
     if tun.get("enabled"):

@@ -258,56 +258,57 @@ def _has(results: dict, key: str) -> bool:
     return any(key in r for m in results["methods"].values() for r in m["recordings"])
 
 
+def _metric_rows(results: dict, key: str, columns: List[str], values, bold_best: bool) -> List[str]:
+    """One Markdown table: a row per method, a column per entry of ``columns`` (values(method,
+    column) -> number or None); the lowest value of each column in bold."""
+    methods = list(results["methods"])
+    table = {m: [values(m, c) for c in columns] for m in methods}
+    best = [min((table[m][j] for m in methods if table[m][j] is not None), default=None)
+            for j in range(len(columns))]
+    lines = [f"| {LABELS.get(key, key)} (deg) | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    for m in methods:
+        cells = []
+        for j, v in enumerate(table[m]):
+            s = _fmt(v)
+            if bold_best and len(methods) > 1 and v is not None and v == best[j]:
+                s = f"**{s}**"
+            cells.append(s)
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown_table(results: dict, metric_keys: Iterable[str] = ("aae_deg", "aye_deg"),
                    bold_best: bool = True) -> str:
-    """Markdown table in the paper's Table 1/2 layout: one row per recording, for each method
-    one column per metric (``"<method> AAE"``, ``"<method> AYE"``), then an Average row.
-    The lowest value of each metric in a row is bold."""
-    metric_keys = [k for k in metric_keys]
-    methods = list(results["methods"])
-    head = ["Sequence"] + [f"{m} {LABELS.get(k, k)}" for m in methods for k in metric_keys]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-
-    def row(label: str, values: Dict[str, dict]) -> str:
-        cells = [label]
-        best = {}
-        for k in metric_keys:
-            vs = [values[m].get(k) for m in methods if values[m].get(k) is not None]
-            best[k] = min(vs) if vs else None
-        for m in methods:
-            for k in metric_keys:
-                v = values[m].get(k)
-                s = _fmt(v)
-                if bold_best and len(methods) > 1 and v is not None and v == best[k]:
-                    s = f"**{s}**"
-                cells.append(s)
-        return "| " + " | ".join(cells) + " |"
-
-    for i, rec in enumerate(results["recordings"]):
-        lines.append(row(rec, {m: results["methods"][m]["recordings"][i] for m in methods}))
-    lines.append(row("Average", {m: results["methods"][m]["mean"] for m in methods}))
-    return "\n".join(lines) + "\n"
+    """One Markdown table per metric: a row per method, a column per recording and the
+    Average (the mean over recordings); the best (lowest) of each column in bold. Readable with
+    dozens of methods (the full method x metric matrix is in ``results.json``)."""
+    recs = list(results["recordings"])
+    out = []
+    for key in metric_keys:
+        def val(m, c, key=key):
+            r = results["methods"][m]
+            return (r["mean"] if c == "Average" else r["recordings"][recs.index(c)]).get(key)
+        out.append("\n".join(_metric_rows(results, key, recs + ["Average"], val, bold_best)))
+    return "\n\n".join(out) + "\n"
 
 
-def group_table(results: dict, metric_keys: Iterable[str] = ("aae_deg", "aye_deg")) -> str:
-    """Markdown table of the per-group averages (rows groups, columns method × metric)."""
-    metric_keys = list(metric_keys)
+def group_table(results: dict, metric_keys: Iterable[str] = ("aae_deg", "aye_deg"), bold_best: bool = True) -> str:
+    """Per-group averages, one Markdown table per metric: a row per method, a column per group
+    (``group (n)``, n recordings)."""
     methods = list(results["methods"])
     groups: List[str] = []
     for m in methods:
         for g in results["methods"][m].get("groups", {}):
             if g not in groups:
                 groups.append(g)
-    head = ["Group", "n"] + [f"{m} {LABELS.get(k, k)}" for m in methods for k in metric_keys]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for g in groups:
-        first = results["methods"][methods[0]]["groups"].get(g, {})
-        cells = [g, str(first.get("n_recordings", ""))]
-        for m in methods:
-            gv = results["methods"][m]["groups"].get(g, {})
-            cells += [_fmt(gv.get(k)) for k in metric_keys]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+    first = results["methods"][methods[0]].get("groups", {})
+    cols = [f"{g} ({first.get(g, {}).get('n_recordings', '?')})" for g in groups]
+    out = []
+    for key in metric_keys:
+        def val(m, c, key=key):
+            return results["methods"][m].get("groups", {}).get(groups[cols.index(c)], {}).get(key)
+        out.append("\n".join(_metric_rows(results, key, cols, val, bold_best)))
+    return "\n\n".join(out) + "\n"
 
 
 def results_markdown(results: dict) -> str:
