@@ -7,7 +7,7 @@
 
 accuracy: every method incl. the PyPI peers on one dataset through the evaluation runner
           (tcn_ahrs.compare.benchmark_accuracy_main; same code as scripts/compare.py).
-speed:    tcn_ahrs.bench_speed.main(cfg) (imported only in that mode).
+speed:    tcn_ahrs.bench.main(cfg) (imported only in that mode).
 Config: conf/benchmark.yaml. Output: runs/benchmark/<mode>/<data>/<time> unless out=DIR.
 """
 import sys
@@ -41,7 +41,7 @@ def main(cfg: DictConfig) -> None:
 
         benchmark_accuracy_main(cfg)
     elif mode == "speed":
-        from tcn_ahrs.bench_speed import main as speed_main
+        from tcn_ahrs.bench import main as speed_main
 
         speed_main(cfg)
     else:

@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from tcn_ahrs import bench_speed
+from tcn_ahrs import bench
 from tcn_ahrs.losses import increment_loss
 
 
@@ -19,7 +19,7 @@ def test_quick_run_fields_and_files(tmp_path):
                      "inference": {"samples": 200, "repeats": 1, "warmup": 0},
                      "streaming": {"samples": 20, "warmup": 2, "run_samples": 20},
                      "filters": {"samples": 50, "batches": [1, 3], "peers": ["vqf", "imufusion"]}}}
-    res = bench_speed.main(cfg)
+    res = bench.main(cfg)
     env = res["environment"]
     for k in ("torch", "numpy", "cpu", "cpu_count", "torch_threads", "device", "gpu", "loadavg_start"):
         assert k in env
@@ -60,30 +60,30 @@ def test_quick_run_fields_and_files(tmp_path):
 
 def test_config_errors():
     with pytest.raises(ValueError, match="speed.train.batchsize"):
-        bench_speed.resolve_config({"speed": {"train": {"batchsize": 4}}})
+        bench.resolve_config({"speed": {"train": {"batchsize": 4}}})
     with pytest.raises(ValueError, match="sections"):
-        bench_speed.resolve_config({"speed": {"sections": ["trian"]}})
+        bench.resolve_config({"speed": {"sections": ["trian"]}})
     with pytest.raises(ValueError, match="device"):
-        bench_speed.resolve_config({"device": "tpu"})
-    p = bench_speed.resolve_config({"quick": True, "speed": {"train": {"batch_size": 3}}})
-    assert p["train"]["batch_size"] == 3 and p["train"]["window"] == bench_speed.QUICK["train"]["window"]
+        bench.resolve_config({"device": "tpu"})
+    p = bench.resolve_config({"quick": True, "speed": {"train": {"batch_size": 3}}})
+    assert p["train"]["batch_size"] == 3 and p["train"]["window"] == bench.QUICK["train"]["window"]
 
 
 def test_static_loss_equals_increment_loss():
     """The CUDA-graph variant's sync-free loss is the project's loss (with and without gaps)."""
-    d = bench_speed.synthetic_imu(2, 120, 9, 100.0, seed=3)
+    d = bench.synthetic_imu(2, 120, 9, 100.0, seed=3)
     omega = d["imu"][..., 0:3] + 0.05 * torch.randn(2, 120, 3, generator=torch.Generator().manual_seed(0))
     valid = d["valid"].clone()
     for v in (valid, valid.index_fill(1, torch.arange(40, 50), False)):
         ref = increment_loss(omega, d["dt"], d["rot"], v, (16, 32), 0.005)
-        got = bench_speed.static_increment_loss(omega, d["dt"], d["rot"], v, (16, 32), 0.005)
+        got = bench.static_increment_loss(omega, d["dt"], d["rot"], v, (16, 32), 0.005)
         assert float(ref) > 0
         assert float(got) == pytest.approx(float(ref), rel=1e-6)
 
 
 def test_broad_epoch_constant_fallback():
-    p = dict(bench_speed.DEFAULTS["train"], data_config=None)
-    e = bench_speed.broad_epoch(p)
+    p = dict(bench.DEFAULTS["train"], data_config=None)
+    e = bench.broad_epoch(p)
     # 16 recordings of ~37.6 k samples: (37573 - 3000) // 100 + 1 = 346 windows each
     assert e["windows"] == 16 * 346 and e["steps"] == math.ceil(16 * 346 / 16)
     assert "constant" in e["source"]
