@@ -1,0 +1,212 @@
+"""Deployment export: self-contained TorchScript modules (batch and streaming) of a trained
+:class:`~tcn_ahrs.model.ahrs.LearnedAHRS`.
+
+Contract (also in the README and saved inside every exported file as ``metadata.json`` and as
+the string returned by the module's ``metadata()`` method):
+
+* ``python scripts/export.py ckpt=PATH out=FILE.pt [mode=batch|streaming|both]`` writes
+  TorchScript that needs only ``torch`` to load and run (no ``tcn_ahrs`` import).
+  ``mode=both`` (default) writes the batch module to ``FILE.pt`` and the streaming module to
+  ``FILE_streaming.pt``.
+* Inputs (the checkpoint's units and frames): raw IMU samples with channels
+  gyro x,y,z [rad/s], accelerometer x,y,z [m/s^2, specific force: +9.81 along the body axis
+  pointing up at rest] and, for 9-axis models, magnetometer x,y,z [uT]; all in the body
+  (sensor) frame. Time step ``dt`` [s] = time since the previous sample. Initial attitude
+  ``q0`` = Hamilton quaternion (w, x, y, z), ``nav_from_body``, navigation frame ENU.
+* Batch module: ``quat, omega = m(imu (N, C), dt (float or (N,)), q0 (4,))`` ->
+  attitude quaternions (N, 4) (w, x, y, z; w >= 0; nav_from_body, ENU; ``quat[0] == q0``)
+  and corrected angular rate ω̂ (N, 3) [rad/s, body frame] (paper Eq. 22), float64.
+  ``dt[0]`` is not used (the first rate sample does not move the attitude, Eq. 3).
+* Streaming module: ``m.reset(q0)``; then per sample ``quat, omega = m.step(sample (C,), dt)``
+  -> (4,), (3,) float64; the same numbers as the batch module, sample by sample (the
+  ``dt`` of the first call after ``reset`` is not used). ``m.run(imu, dt, q0)`` = reset +
+  step over a whole sequence in TorchScript. State: one ring buffer per convolution layer
+  (``dilation * (kernel - 1)`` past inputs, zeros after ``reset`` = the batch model's causal
+  zero padding), the ECF's pre-integrated attitude(s) C̃ (Eq. 25) and the integrated attitude.
+* Input checks (every module): wrong shapes, a NaN/inf reading, or a time step after the first
+  that is not finite and > 0 raise ``ValueError`` naming the input and the index; a streaming
+  step checks before it changes any state, so after the error the module continues as if that
+  sample had not been given (``reset(q0)`` also starts afresh).
+* ``m.metadata()`` (and the ``metadata.json`` extra file) is JSON with: axes, channel names,
+  variant, model config, the rate the model was trained at (``rate_hz``, null when the
+  checkpoint does not record it), units, frames, quaternion order, receptive field, the input
+  normalisation (included in the module), the tcn_ahrs version, the checkpoint's sha256.
+
+Numerics: the TCN runs in float32 (``net_dtype``; BatchNorm folded into the convolutions,
+dropout off), the calibration matrices, the ECF and the attitude integration in float64
+(quaternions, blocked prefix-product scan). The parity bounds (batch vs streaming vs the eager
+model; float64 networks vs eager float64) are the tolerances asserted in ``tests/test_export.py``
+and ``tests/test_export_closed_loop.py``. ``net_dtype=bfloat16`` (batch module only, opt-in:
+``export_checkpoint(..., mode="batch", net_dtype="bfloat16")``) runs the convolutions in bfloat16
+(faster on AVX512-BF16 CPUs) and is NOT within those bounds (docs/performance.md).
+
+Exported modules are frozen (:func:`torch.jit.freeze`, public methods kept): flags and
+weights become constants. The streaming step folds the input normalisation into the first
+layer and computes GELU as ``u (1 + erf(u))`` on sqrt(1/2)-scaled pre-activations (see
+:meth:`StreamingAHRS._gelu_scaled`), identical math with fewer TorchScript ops.
+"""
+import hashlib
+import json
+import warnings
+from pathlib import Path
+from typing import Any, Dict, Mapping, Optional, Union
+
+import torch
+from torch import nn
+
+from .. import __version__
+from .closed_loop import ClosedLoopBatch, ClosedLoopStreaming
+from .fused import _hamilton_table, fuse_model, quat_cumprod, quat_integrate
+from .inputs import ExportError
+from .open_loop import NET_DTYPES, BatchAHRS, StreamingAHRS
+
+__all__ = ["export_batch", "export_streaming", "export_checkpoint", "read_metadata", "build_metadata",
+           "file_sha256", "streaming_path", "ExportError", "BatchAHRS", "StreamingAHRS", "ClosedLoopBatch",
+           "ClosedLoopStreaming", "fuse_model", "quat_cumprod", "quat_integrate", "MODES", "NET_DTYPES",
+           "CHANNELS", "_hamilton_table"]
+
+MODES = ("batch", "streaming", "both")
+CHANNELS = {6: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"],
+            9: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"]}
+
+
+def file_sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def build_metadata(model: nn.Module, mode: str, meta: Optional[Mapping[str, Any]] = None,
+                   net_dtype: torch.dtype = torch.float32) -> Dict[str, Any]:
+    """The exported file's self-description (plain JSON types). ``meta`` adds or overrides
+    entries (``rate_hz``, ``checkpoint``, ``checkpoint_sha256``, ``model_config``, ``data``)."""
+    axes = int(model.axes)
+    ecf = model.ecf
+    md: Dict[str, Any] = {
+        "format": "tcn-ahrs TorchScript export",
+        "mode": mode,
+        "tcn_ahrs_version": __version__,
+        "torch_version": torch.__version__,
+        "variant": str(getattr(model, "variant", "")),
+        "axes": axes,
+        "channels": CHANNELS[axes],
+        "rate_hz": None,
+        "receptive_field": int(model.receptive_field),
+        "preintegration": ecf.preintegration if ecf is not None else "none",
+        "ecf": ecf is not None,
+        "loop": str(getattr(model, "loop", "open")),
+        "units": {"gyro": "rad/s", "acc": "m/s^2 (specific force, +9.81 along the up axis at rest)",
+                  "mag": "uT", "dt": "s", "omega": "rad/s"},
+        "frames": {"imu": "body (sensor) frame", "attitude": "nav_from_body", "navigation": "ENU"},
+        "quaternion_order": "wxyz",
+        "quaternion_convention": "Hamilton, scalar first, w >= 0",
+        "input_normalisation": {
+            "included": True,
+            "mean": [float(v) for v in model.calibration.input_mean],
+            "std": [float(v) for v in model.calibration.input_std]},
+        "dtype": {"network": str(net_dtype).replace("torch.", ""), "calibration_ecf_integration": "float64"},
+        "api": ({"forward": "quat (N,4), omega (N,3) = m(imu (N,C), dt float|(N,), q0 (4,))"} if mode == "batch" else
+                {"reset": "m.reset(q0 (4,))",
+                 "step": "quat (4,), omega (3,) = m.step(sample (C,), dt float)  (dt unused on the first call)",
+                 "run": "quat (N,4), omega (N,3) = m.run(imu (N,C), dt float|(N,), q0 (4,))"}),
+        "checkpoint": None,
+        "checkpoint_sha256": None,
+    }
+    md.update(dict(meta or {}))
+    return md
+
+
+def _script(module: nn.Module, freeze: bool = True):
+    """TorchScript ``module`` (eval mode). ``freeze``: :func:`torch.jit.freeze` it, keeping the
+    public methods: attributes that are never mutated (flags, weights, layer lists) become
+    constants, dead branches go, and the per-sample ``step`` runs ~8% faster."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)  # torch.jit.script is deprecated in 2.13
+        scripted = torch.jit.script(module.eval())
+        if not freeze:
+            return scripted
+        keep = [n for n in ("metadata", "errors", "corrected_rate", "reset", "step", "run") if scripted._c._has_method(n)]
+        return torch.jit.freeze(scripted, preserved_attrs=keep)
+
+
+def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str):
+    model = model.eval()
+    md = build_metadata(model, mode, meta, net_dtype)
+    if getattr(model, "closed", None) is not None:
+        if net_dtype != torch.float32:
+            raise ExportError("the closed-loop export runs its networks in float32 (net_dtype=float32)")
+        cls = ClosedLoopStreaming if mode == "streaming" else ClosedLoopBatch
+        module = cls(model, md).eval()
+    else:
+        module = cls(fuse_model(model), md, net_dtype).eval()
+    scripted = _script(module)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.jit.save(scripted, str(tmp), _extra_files={"metadata.json": scripted.metadata()})
+    tmp.replace(path)
+    return scripted
+
+
+def export_batch(model: nn.Module, path, meta: Optional[Mapping[str, Any]] = None,
+                 net_dtype: torch.dtype = torch.float32):
+    """Script ``model`` (a :class:`LearnedAHRS`, eval mode) as a :class:`BatchAHRS` and save it
+    to ``path`` (with ``metadata.json``). Returns the scripted module."""
+    return _export(BatchAHRS, model, path, meta, net_dtype, "batch")
+
+
+def export_streaming(model: nn.Module, path, meta: Optional[Mapping[str, Any]] = None,
+                     net_dtype: torch.dtype = torch.float32):
+    """Script ``model`` as a :class:`StreamingAHRS` and save it to ``path``. Returns the module."""
+    return _export(StreamingAHRS, model, path, meta, net_dtype, "streaming")
+
+
+def streaming_path(out) -> Path:
+    """Where ``mode=both`` writes the streaming module: ``FILE.pt`` -> ``FILE_streaming.pt``."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}_streaming{out.suffix or '.pt'}")
+
+
+def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional[float] = None,
+                      net_dtype: Union[str, torch.dtype] = "float32") -> Dict[str, str]:
+    """Load a checkpoint (``weights_only=True``, :func:`tcn_ahrs.checkpoint.model_from_checkpoint`)
+    and export it. Returns {"batch": path, "streaming": path} (the ones written).
+
+    Raises :class:`tcn_ahrs.checkpoint.CheckpointError` for a missing, corrupt or foreign file."""
+    from ..checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint
+
+    if mode not in MODES:
+        raise ValueError(f"export mode {mode!r}: expected one of {MODES}")
+    if isinstance(net_dtype, str):
+        if net_dtype not in ("float32", "float64", "bfloat16"):
+            raise ValueError(f"net_dtype {net_dtype!r}: expected 'float32', 'float64' or 'bfloat16'")
+        net_dtype = getattr(torch, net_dtype)
+    if net_dtype == torch.bfloat16 and mode != "batch":
+        raise ValueError(f"net_dtype bfloat16 is for mode=batch only (got mode={mode})")
+    model = model_from_checkpoint(ckpt_path)
+    ck_meta = checkpoint_meta(load_checkpoint(ckpt_path), ckpt_path)
+    rate = rate_hz if rate_hz is not None else ck_meta.get("rate_hz", (ck_meta.get("layout") or {}).get("rate_hz"))
+    if rate is None:
+        warnings.warn(f"{ckpt_path}: the checkpoint does not record the rate the model was trained at; "
+                      "metadata rate_hz = null (pass rate=HZ to record it)")
+    meta = {"rate_hz": None if rate is None else float(rate), "checkpoint": Path(ckpt_path).name,
+            "checkpoint_sha256": file_sha256(ckpt_path), "model_config": ck_meta.get("model"),
+            "data": ck_meta.get("data")}
+    written: Dict[str, str] = {}
+    if mode in ("batch", "both"):
+        export_batch(model, out_path, meta, net_dtype)
+        written["batch"] = str(out_path)
+    if mode in ("streaming", "both"):
+        sp = Path(out_path) if mode == "streaming" else streaming_path(out_path)
+        export_streaming(model, sp, meta, net_dtype)
+        written["streaming"] = str(sp)
+    return written
+
+
+def read_metadata(path) -> Dict[str, Any]:
+    """The ``metadata.json`` of an exported file (only torch needed)."""
+    extra = {"metadata.json": ""}
+    torch.jit.load(str(path), _extra_files=extra)
+    return json.loads(extra["metadata.json"])

@@ -1,0 +1,215 @@
+"""The open-loop (paper) model restated for the exported modules: BatchNorm folded into the
+convolutions (:func:`fuse_model`) and the float64 quaternion scans of the open-loop ECF."""
+# No `from __future__ import annotations`: TorchScript reads the class-level attribute
+# annotations (List[Tensor], ...) as real types.
+from typing import Any, Dict, List, Tuple
+
+import torch
+from torch import Tensor, nn
+
+from .. import so3
+from ..model.tcn import TCN, CausalConv1d, ConstantError
+from .inputs import ExportError
+
+
+def _fold_conv_bn(conv: nn.Conv1d, bn: nn.BatchNorm1d) -> Tuple[Tensor, Tensor]:
+    """Eval-mode BatchNorm folded into the preceding convolution (float64):
+    ``bn(conv(x)) = (W s) * x + (b - mu) s + beta`` with ``s = gamma / sqrt(var + eps)``."""
+    w = conv.weight.detach().double()
+    b = conv.bias.detach().double() if conv.bias is not None else torch.zeros(w.shape[0], dtype=torch.float64)
+    var = bn.running_var.detach().double() if bn.running_var is not None else torch.ones_like(b)
+    mean = bn.running_mean.detach().double() if bn.running_mean is not None else torch.zeros_like(b)
+    gamma = bn.weight.detach().double() if bn.weight is not None else torch.ones_like(b)
+    beta = bn.bias.detach().double() if bn.bias is not None else torch.zeros_like(b)
+    s = gamma / torch.sqrt(var + bn.eps)
+    return w * s[:, None, None], (b - mean) * s + beta
+
+
+def _tcn_layers(net: TCN, where: str) -> List[Tuple[Tensor, Tensor, int]]:
+    """[(weight (C_out, C_in, k), bias (C_out,), dilation)] of the dilated layers, BN folded."""
+    mods = list(net.hidden)
+    if len(mods) % 4:
+        raise ExportError(f"{where}: expected (conv, BatchNorm, Dropout, GELU) blocks, got {mods}")
+    out = []
+    for i in range(0, len(mods), 4):
+        conv, bn, drop, act = mods[i:i + 4]
+        if not (isinstance(conv, CausalConv1d) and isinstance(bn, nn.BatchNorm1d)
+                and isinstance(drop, nn.Dropout) and isinstance(act, nn.GELU)):
+            raise ExportError(f"{where}: block {i // 4} is {[type(m).__name__ for m in mods[i:i + 4]]}, "
+                              "expected [CausalConv1d, BatchNorm1d, Dropout, GELU]")
+        if act.approximate != "none":
+            raise ExportError(f"{where}: GELU(approximate={act.approximate!r}) not supported")
+        c = conv.conv
+        if c.stride[0] != 1 or c.groups != 1 or conv.left_pad != c.dilation[0] * (c.kernel_size[0] - 1):
+            raise ExportError(f"{where}: block {i // 4}: only stride-1, ungrouped causal convolutions are supported")
+        w, b = _fold_conv_bn(c, bn)
+        out.append((w, b, int(c.dilation[0])))
+    return out
+
+
+def fuse_model(model: nn.Module) -> Dict[str, Any]:
+    """Read a :class:`LearnedAHRS` into the flat parameters the exported modules use.
+
+    The (up to three) error TCNs share their architecture, so they are stacked as G groups:
+    the first layer is one dense convolution over the normalised C-channel input (each net's
+    weights embedded at the channels it reads, zeros elsewhere), the hidden layers are grouped
+    convolutions, and the 1x1 output layers plus ``error_scale`` become one (C, G*C_last)
+    matrix mapping to the C-channel error vector ``e`` (constant error terms go into its bias).
+    The calibration is then ``x̂ = M y − e`` with ``M = blockdiag(R̂_gyr, R̂_acc, R̂_mag)``
+    (Eqs. 12-14).
+    """
+    cal = model.calibration
+    axes = int(cal.axes)
+    sl = {"gyro": slice(0, 3), "acc": slice(3, 6), "mag": slice(6, 9)}
+    inputs = {"gyro": list(range(axes)) if cal.gyro_input == "all" else [0, 1, 2],
+              "acc": [3, 4, 5], "mag": [6, 7, 8]}
+    nets = {"gyro": cal.gyro_error_net, "acc": cal.acc_error_net, "mag": cal.mag_error_net if axes == 9 else None}
+    b_out = torch.zeros(axes, dtype=torch.float64)
+    tcns: List[Tuple[str, List[Tuple[Tensor, Tensor, int]], Tensor, Tensor]] = []
+    for s, net in nets.items():
+        if net is None:
+            continue
+        scale = float(cal.error_scale[s])
+        if isinstance(net, ConstantError):
+            b_out[sl[s]] += scale * net.bias.detach().double()
+        elif isinstance(net, TCN):
+            layers = _tcn_layers(net, f"calibration.{s}_error_net")
+            w_o = net.out.weight.detach().double()[:, :, 0] * scale  # (3, C_last)
+            b_o = net.out.bias.detach().double() * scale
+            tcns.append((s, layers, w_o, b_o))
+        else:
+            raise ExportError(f"calibration.{s}_error_net: unsupported module {type(net).__name__}")
+    fused: Dict[str, Any] = {"axes": axes, "groups": len(tcns), "sensors": [t[0] for t in tcns]}
+    if tcns:
+        arch = [[(tuple(w.shape), d) for w, _, d in t[1][1:]] + [(t[1][0][0].shape[0], t[1][0][0].shape[2], t[1][0][2])]
+                for t in tcns]
+        if any(a != arch[0] for a in arch):
+            raise ExportError(f"error TCNs of {fused['sensors']} differ in architecture; they must share "
+                              "channels, kernel_size and dilations to be stacked")
+        g = len(tcns)
+        first = []
+        for s, layers, _, _ in tcns:
+            w0, _, _ = layers[0]
+            full = torch.zeros(w0.shape[0], axes, w0.shape[2], dtype=torch.float64)
+            full[:, inputs[s]] = w0
+            first.append(full)
+        fused["first_weight"] = torch.cat(first, 0)  # (G*C1, C, k)
+        fused["first_bias"] = torch.cat([t[1][0][1] for t in tcns], 0)
+        fused["first_dilation"] = tcns[0][1][0][2]
+        fused["kernel_size"] = int(tcns[0][1][0][0].shape[2])
+        fused["hidden"] = []  # [(weight (G*C_out, C_in, k) grouped, bias (G*C_out,), dilation)]
+        for li in range(1, len(tcns[0][1])):
+            fused["hidden"].append((torch.cat([t[1][li][0] for t in tcns], 0),
+                                    torch.cat([t[1][li][1] for t in tcns], 0), tcns[0][1][li][2]))
+        c_last = tcns[0][2].shape[1]
+        w_out = torch.zeros(axes, g * c_last, dtype=torch.float64)
+        for i, (s, _, w_o, b_o) in enumerate(tcns):
+            w_out[sl[s], i * c_last:(i + 1) * c_last] = w_o
+            b_out[sl[s]] += b_o
+        fused["out_weight"] = w_out
+    fused["out_bias"] = b_out
+    m = torch.zeros(axes, axes, dtype=torch.float64)
+    for s, mat in (("gyro", cal.gyro_matrix), ("acc", cal.acc_matrix), ("mag", cal.mag_matrix)):
+        if mat is not None and axes >= sl[s].stop:
+            m[sl[s], sl[s]] = mat.matrix.detach().double()
+    fused["calib_matrix"] = m
+    fused["input_mean"] = cal.input_mean.detach().double().clone()
+    fused["input_std"] = cal.input_std.detach().double().clone()
+    ecf = model.ecf
+    fused["ecf"] = ecf is not None
+    fused["preintegration"] = ecf.preintegration if ecf is not None else "none"
+    fused["acc_gain"] = (ecf.acc_gain.detach().double().clone() if ecf is not None and ecf.acc_gain is not None
+                         else torch.zeros(3, dtype=torch.float64))
+    fused["mag_gain"] = (ecf.mag_gain.detach().double().clone() if ecf is not None and ecf.mag_gain is not None
+                         and axes == 9 else torch.zeros(3, dtype=torch.float64))
+    fused["use_acc"] = bool(ecf is not None and ecf.acc_gain is not None)
+    fused["use_mag"] = bool(ecf is not None and ecf.mag_gain is not None and axes == 9)
+    return fused
+
+
+# ============================================================ float64 quaternion scans
+def _hamilton_table() -> Tensor:
+    """(16, 4) float64: ``p ⊗ q = (p ⊗_outer q).reshape(16) @ table`` (row 4 i + j holds the
+    sign with which ``p_i q_j`` enters each component of the Hamilton product)."""
+    e = torch.eye(4, dtype=torch.float64)
+    return so3.quat_mul(e[:, None, :], e[None, :, :]).reshape(16, 4)
+
+
+def _qmul(a: Tensor, b: Tensor, table: Tensor) -> Tensor:
+    """Row-wise Hamilton product of (M, 4) quaternions: one outer product + one matmul."""
+    return torch.mm((a.unsqueeze(2) * b.unsqueeze(1)).reshape(-1, 16), table)
+
+
+def _cumprod_hillis_steele(q: Tensor, table: Tensor) -> Tensor:
+    """Inclusive prefix product of (N, 4) quaternions in ceil(log2 N) levels (O(N log N) work)."""
+    n = q.size(0)
+    p = q
+    d = 1
+    while d < n:
+        p = torch.cat([p[:d], _qmul(p[:-d], p[d:], table)], 0)
+        d *= 2
+    return p
+
+
+def quat_cumprod(q: Tensor, table: Tensor, block: int = 32) -> Tensor:
+    """Inclusive cumulative Hamilton product ``P_k = q_0 ⊗ ... ⊗ q_k`` of (N, 4) float64
+    quaternions (not renormalised: float64 round-off only; the caller normalises once).
+
+    Blocked scan, O(N) work: the sequence is cut into B blocks of ``block`` samples; (1) the
+    within-block prefixes of all blocks advance together, ``block - 1`` sequential products on
+    (B, 4) rows; (2) the block totals are scanned (Hillis-Steele, log2 B levels); (3) each block
+    is multiplied on the left by the product of all earlier blocks. A plain O(N log N)
+    Hillis-Steele scan over 6000 samples costs ~13 levels x N products, 3x3 matrices
+    (:func:`so3.cumprod_matrix`) ~4x more again; this is ~3 N products.
+    ``table`` = :func:`_hamilton_table`."""
+    n = q.size(0)
+    if n <= 2 * block:
+        return _cumprod_hillis_steele(q, table)
+    nb = (n + block - 1) // block
+    pad = nb * block - n
+    if pad > 0:  # identity quaternions at the end change no prefix
+        ident = torch.zeros(pad, 4, dtype=q.dtype, device=q.device)
+        ident[:, 0] = 1.0
+        q = torch.cat([q, ident], 0)
+    x = q.view(nb, block, 4).transpose(0, 1).contiguous()  # (block, B, 4): step j of every block
+    acc = x[0]
+    steps = [acc]
+    for j in range(1, block):
+        acc = _qmul(acc, x[j], table)
+        steps.append(acc)
+    within = torch.stack(steps, 0)  # (block, B, 4) within-block prefixes
+    before = _cumprod_hillis_steele(within[-1], table)[:-1]  # (B-1, 4): blocks 0..b-1
+    later = _qmul(before.unsqueeze(0).expand(block, nb - 1, 4).reshape(-1, 4),
+                  within[:, 1:].reshape(-1, 4), table).view(block, nb - 1, 4)
+    out = torch.cat([within[:, :1], later], 1).transpose(0, 1).reshape(nb * block, 4)
+    return out[:n]
+
+
+def quat_integrate(q0: Tensor, omega: Tensor, dt: Tensor, table: Tensor) -> Tensor:
+    """Eq. 3 with quaternions: ``q_k = q_0 ⊗ exp(ω_1 dt_1) ⊗ ... ⊗ exp(ω_k dt_k)`` (unnormalised
+    by at most float64 round-off). q0 (4,), omega (N, 3), dt (N,) -> (N, 4) with entry 0 = q0."""
+    inc = so3.quat_exp(omega[1:] * dt[1:, None])
+    return quat_cumprod(torch.cat([q0.unsqueeze(0), inc], 0), table)
+
+
+def _rows_up_east(q: Tensor) -> Tuple[Tensor, Tensor]:
+    """Rows of C(q) (nav_from_body, (N, 4) unit quaternions) the ECF uses: ``C^T e_up`` (third
+    row) and ``C^T e_east`` (first row), each (N, 3)."""
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    up = torch.stack([2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)], 1)
+    east = torch.stack([1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)], 1)
+    return up, east
+
+
+def _unit_rows(v: Tensor) -> Tensor:
+    return v / torch.linalg.norm(v, dim=1, keepdim=True).clamp_min(1e-9)
+
+
+def acc_error_rows(acc: Tensor, up: Tensor) -> Tensor:
+    """Eq. 23 (as :func:`tcn_ahrs.model.ecf.acc_error`): ``unit(ĝ) × (C̃^T e_up)``, (N, 3)."""
+    return torch.linalg.cross(_unit_rows(acc), up, dim=1)
+
+
+def mag_error_rows(mag: Tensor, acc_raw: Tensor, east: Tensor) -> Tensor:
+    """Eq. 24 (as :func:`tcn_ahrs.model.ecf.mag_error`): ``unit(b̂ × g') × (C̃^T e_east)``."""
+    return torch.linalg.cross(_unit_rows(torch.linalg.cross(mag, acc_raw, dim=1)), east, dim=1)

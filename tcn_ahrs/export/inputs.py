@@ -1,0 +1,67 @@
+"""Input checks shared by every exported module, and the export error type."""
+# No `from __future__ import annotations`: TorchScript reads the class-level attribute
+# annotations (List[Tensor], ...) as real types.
+import math
+from typing import List, Union
+
+import torch
+from torch import Tensor, nn
+
+
+
+class ExportError(ValueError):
+    """The model cannot be exported (a structure this exporter does not know)."""
+
+
+class _Inputs(nn.Module):
+    """Input checks shared by every exported module (``self.axes`` set by the subclass)."""
+
+    def _check_imu(self, imu: Tensor):
+        if imu.dim() != 2 or imu.size(1) != self.axes:
+            raise ValueError("imu: expected shape (N, " + str(self.axes) + ") [gyro rad/s, acc m/s^2"
+                             + (", mag uT" if self.axes == 9 else "") + "], got " + str(list(imu.shape)))
+        if imu.size(0) < 1:
+            raise ValueError("imu: expected at least one sample")
+        self._check_finite(imu, "imu")
+
+    def _check_finite(self, x: Tensor, what: str):
+        """Raise on NaN/inf, naming the first bad entry (one NaN would otherwise spread through
+        the networks' receptive field and the filter state into every later output)."""
+        bad = torch.logical_not(torch.isfinite(x))
+        if bool(bad.any()):
+            where: List[int] = torch.nonzero(bad)[0].tolist()
+            raise ValueError(what + ": non-finite value at index " + str(where)
+                             + " (expected finite readings: drop or interpolate that sample)")
+
+    def _check_step(self, dt: float, first: bool):
+        """dt of a step after the first must be finite and > 0 s (the first is not used)."""
+        if not first and not (dt > 0.0 and math.isfinite(dt)):
+            raise ValueError("dt: expected a finite time step > 0 s since the previous sample, got "
+                             + str(dt))
+
+    def _q0(self, q0: Tensor) -> Tensor:
+        if q0.numel() != 4:
+            raise ValueError("q0: expected 4 values (w, x, y, z), got shape " + str(list(q0.shape)))
+        q = q0.reshape(4).to(torch.float64)
+        n = float(torch.linalg.norm(q))
+        if not (n > 0.0 and math.isfinite(n)):
+            raise ValueError("q0: expected a non-zero finite quaternion (w, x, y, z)")
+        return q / n
+
+    def _dt(self, dt: Union[float, Tensor], n: int, dtype: torch.dtype = torch.float64) -> Tensor:
+        if isinstance(dt, Tensor):
+            d = dt.to(dtype)
+            if d.dim() == 0:
+                d = d.expand(n)
+            elif d.dim() != 1 or d.size(0) != n:
+                raise ValueError("dt: expected a float or shape (" + str(n) + ",), got " + str(list(d.shape)))
+        else:
+            d = torch.full([n], float(dt), dtype=dtype)
+        # dt[0] is not used (Eq. 3); every later step must be a finite positive time
+        later = d[1:]
+        bad = torch.logical_not(torch.isfinite(later) & (later > 0))
+        if bool(bad.any()):
+            k = int(torch.nonzero(bad)[0, 0]) + 1
+            raise ValueError("dt: expected finite time steps > 0 s after sample 0, got " + str(float(d[k]))
+                             + " at index " + str(k))
+        return d
