@@ -17,7 +17,6 @@ per point).
 """
 from __future__ import annotations
 
-import itertools
 import math
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 
 from .estimators.base import initial_quat
+from .estimators.registry import grid_combinations  # noqa: F401  (re-exported: tuning.grid_combinations)
 from .estimators.classical import ClassicalEstimator
 from .sequence import ImuSequence
 
@@ -42,15 +42,6 @@ def _metric_fn(metric: Union[str, MetricFn]) -> MetricFn:
         raise ValueError(f"unknown metric {metric!r}: expected a function of tcn_ahrs.metrics "
                          "(e.g. 'aae', 'aye') or a callable (q_gt, q_est, mask) -> float") from None
     return lambda q_gt, q_est, mask: fn(q_gt, q_est, mask)
-
-
-def grid_combinations(grid: Mapping[str, Sequence]) -> List[Dict[str, float]]:
-    """Cartesian product of ``grid`` (name -> values) as a list of dicts (first key slowest)."""
-    keys = list(grid)
-    for k in keys:
-        if len(grid[k]) == 0:
-            raise ValueError(f"grid entry {k!r} is empty")
-    return [dict(zip(keys, vals)) for vals in itertools.product(*(grid[k] for k in keys))]
 
 
 def _initial_quats(seqs: Sequence[ImuSequence], init: str) -> List[Optional[np.ndarray]]:

@@ -22,16 +22,17 @@ kind           what ``build(name, axes, **params)`` returns
 Column names: ``<method><axes>d`` (``ecf9d`` uses the magnetometer, ``ecf6d`` does not),
 ``Raw IMU``, or the label given to :func:`build`.
 
-Adding a method is one file: a module that registers its class, listed in the configs'
-``plugins`` (``plugins=[my_package.my_filter]``; :func:`load_plugins` imports it) and named in
-``methods``. The built-in modules (raw, classical, peers, learned) are imported on first use.
+Adding a method is one file: a module that registers its class, either inside this package
+(every module here is imported on first use) or anywhere importable and listed in the configs'
+``plugins`` (``plugins=[my_package.my_filter]``; :func:`load_plugins` imports it).
 """
 from __future__ import annotations
 
 import importlib
+import itertools
 import warnings
 from dataclasses import dataclass
-from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
 KINDS = ("raw", "classical", "peer", "learned")
 
@@ -59,7 +60,6 @@ class Method:
 
 
 _METHODS: Dict[str, Method] = {}
-_BUILTIN = ("raw", "classical", "peers", "learned")
 _loaded = False
 
 
@@ -76,8 +76,6 @@ def register(name: str, kind: str, axes: Sequence[int] = (6, 9), grid: Optional[
     def deco(factory):
         g = grid
         if g is None and kind == "classical":
-            from ..tuning import grid_combinations
-
             g = grid_combinations(factory.default_grid) if getattr(factory, "default_grid", None) else []
         m = Method(name, kind, factory, tuple(int(a) for a in axes), tuple(dict(p) for p in (g or [])))
         old = _METHODS.get(name)
@@ -91,16 +89,32 @@ def register(name: str, kind: str, axes: Sequence[int] = (6, 9), grid: Optional[
     return deco
 
 
+def grid_combinations(grid: Mapping[str, Sequence]) -> List[Dict[str, float]]:
+    """Cartesian product of ``grid`` (name -> values) as a list of dicts (first key slowest)."""
+    keys = list(grid)
+    for k in keys:
+        if len(grid[k]) == 0:
+            raise ValueError(f"grid entry {k!r} is empty")
+    return [dict(zip(keys, vals)) for vals in itertools.product(*(grid[k] for k in keys))]
+
+
 def _qualname(f) -> str:
     return f"{getattr(f, '__module__', '?')}.{getattr(f, '__qualname__', repr(f))}"
 
 
 def _load_builtin() -> None:
+    """Import every module of this package once (each registers its methods): a new estimator
+    module dropped into ``tcn_ahrs/estimators/`` is found without editing anything."""
     global _loaded
     if not _loaded:
         _loaded = True
-        for mod in _BUILTIN:
-            importlib.import_module(f"{__package__}.{mod}")
+        import pkgutil
+
+        from . import __path__ as here
+
+        for info in sorted(pkgutil.iter_modules(here), key=lambda i: i.name):
+            if info.name not in ("base", "registry"):
+                importlib.import_module(f"{__package__}.{info.name}")
 
 
 def load_plugins(modules: Optional[Sequence[str]]) -> None:
