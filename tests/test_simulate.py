@@ -300,7 +300,9 @@ def _plain(cfg):
 
 
 def test_envelope_clock_is_integral_of_envelope():
-    env = sim._Envelope(np.array([5.0, 20.0]), np.array([15.0, 30.5]), ramp=2.0)
+    from tcn_ahrs.datasets.simulate.motion import _Envelope
+
+    env = _Envelope(np.array([5.0, 20.0]), np.array([15.0, 30.5]), ramp=2.0)
     t = np.arange(0.0, 40.0, 1e-3)
     e, e1, e2 = env(t)
     tau = env.clock(t)
