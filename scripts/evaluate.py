@@ -21,7 +21,7 @@ from tcn_ahrs.cli import user_errors  # noqa: E402
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 @user_errors
 def main(cfg: DictConfig) -> None:
-    from tcn_ahrs.train import evaluate_main
+    from tcn_ahrs.evaluate.main import evaluate_main
 
     evaluate_main(cfg)
 

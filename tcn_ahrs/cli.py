@@ -8,6 +8,9 @@ from __future__ import annotations
 import functools
 import os
 import sys
+import time
+from pathlib import Path
+from typing import Optional
 
 EXIT_USER_ERROR = 2
 
@@ -26,3 +29,16 @@ def user_errors(main):
             raise SystemExit(EXIT_USER_ERROR) from None
 
     return wrapper
+
+
+def output_dir(explicit: Optional[str], fallback: Path) -> Path:
+    """Where a script writes: ``explicit`` (``out=``/``run_dir=``), else Hydra's run directory
+    of this job, else ``fallback/<date_time>`` (called outside Hydra, e.g. from a test)."""
+    if explicit:
+        return Path(str(explicit))
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return Path(HydraConfig.get().runtime.output_dir)
+    except Exception:  # noqa: BLE001 - no Hydra job
+        return Path(fallback) / time.strftime("%Y-%m-%d_%H-%M-%S")

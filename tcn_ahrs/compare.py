@@ -55,6 +55,7 @@ import numpy as np
 import torch
 
 from .estimators import registry
+from .evaluate.reports import average_rows, compare_markdown
 from .sequence import ImuSequence
 
 VARIANTS = ("default", "tuned")
@@ -314,7 +315,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
         the results dict of :func:`tcn_ahrs.evaluate.evaluate` plus ``tuning``, ``columns``
         (column -> {method, axes, variant, params, ckpt}), ``ablation`` (labels), ``timing``.
     """
-    from .evaluate import evaluate
+    from .evaluate.runner import evaluate
 
     t_start = time.perf_counter()
     eval_seqs = [s for s in eval_seqs]
@@ -420,86 +421,6 @@ def _timed(e):
     return w
 
 
-def _subset(results: dict, names: Sequence[str]) -> dict:
-    r = dict(results)
-    r["methods"] = {n: results["methods"][n] for n in names if n in results["methods"]}
-    return r
-
-
-def compare_markdown(results: dict) -> str:
-    """results.md of a comparison: averages, one table per metric (AAE, AYE; inclination or
-    BROAD total/heading/inclination; methods in rows), group averages, ablation (the paper's
-    Table 3 columns), tuned parameters."""
-    from .evaluate import LABELS, _has, group_table, markdown_table
-
-    title = results.get("dataset") or "comparison"
-    hf = [n for n, c in results.get("columns", {}).items() if c.get("heading_free")]
-    parts = [f"# Comparison: {title}\n",
-             f"Recordings: {len(results['recordings'])}. AAE / AYE in degrees (RMS over scored samples, "
-             f"aligned at the first scored sample: {'yes' if results.get('align', True) else 'no'}). "
-             "Bold: best in the column. `—`: not defined"
-             + (f" (heading-free estimators {', '.join(hf)} are scored on inclination only)" if hf else "")
-             + ".\n",
-             "## Averages over recordings (deg)\n", averages_markdown(results),
-             "\n## AAE / AYE (methods in rows, recordings in columns)\n",
-             markdown_table(results, ("aae_deg", "aye_deg"))]
-    broad = _has(results, "total_deg")
-    if broad:
-        parts += ["\n## BROAD errors: total / heading / inclination (deg, no alignment; 6D: heading offset removed)\n",
-                  markdown_table(results, ("total_deg", "heading_deg", "inclination_deg"))]
-    elif _has(results, "inclination_deg"):
-        parts += ["\n## Inclination error (deg, BROAD definition, no alignment; needs no heading)\n",
-                  markdown_table(results, ("inclination_deg",))]
-    if any(m.get("groups") for m in results["methods"].values()):
-        keys = ("total_deg", "heading_deg", "inclination_deg") if broad else ("aae_deg", "aye_deg", "inclination_deg")
-        key = "total_deg" if broad else "aae_deg"
-        parts += [f"\n## Group averages: {LABELS.get(key, key)} (rows methods, columns groups)\n",
-                  group_table(results, (key,)),
-                  "\n## Group averages: all metrics\n", group_table(results, keys)]
-    abl = results.get("ablation") or []
-    if abl:
-        parts += ["\n## Ablation (paper Table 3): AAE / AYE\n",
-                  markdown_table(_subset(results, abl), ("aae_deg", "aye_deg"))]
-    tun = results.get("tuning") or {}
-    if tun.get("enabled"):
-        recs = ", ".join(f"{r['name']} [{r['start_s']:.0f}+{r['duration_s']:.0f} s]" for r in tun.get("recordings", []))
-        parts += ["\n## Tuned parameters\n",
-                  f"Grid search, mean AAE over {len(tun.get('recordings', []))} training clips: {recs}.\n",
-                  "| column | parameters | tuning AAE | grid | time [s] |", "|---|---|---|---|---|"]
-        for name, t in tun.get("methods", {}).items():
-            parts.append(f"| {name} | {t['params']} | {t['score_aae_deg'] if t['score_aae_deg'] is None else round(t['score_aae_deg'], 2)} "
-                         f"| {t['grid_size']} | {t['time_s']} |")
-        parts.append("")
-    tm = results.get("timing")
-    if tm:
-        parts.append(f"\nWall time: tuning {tm['tune_s']} s, evaluation {tm['evaluate_s']} s, total {tm['total_s']} s.\n")
-    return "\n".join(parts)
-
-
-def averages_markdown(results: dict) -> str:
-    """Markdown: one row per method (column of the big tables) with its mean over recordings of
-    every metric present — the compact summary a README quotes."""
-    keys = [k for k in ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
-            if any((m.get("mean") or {}).get(k) is not None for m in results["methods"].values())]
-    names = {"aae_deg": "AAE", "aye_deg": "AYE", "ahe_deg": "AHE", "total_deg": "BROAD total", "heading_deg": "BROAD heading",
-             "inclination_deg": "inclination"}
-    lines = ["| method | " + " | ".join(names[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
-    for name, m in results["methods"].items():
-        mean = m.get("mean") or {}
-        lines.append(f"| {name} | " + " | ".join("—" if mean.get(k) is None else f"{mean[k]:.2f}" for k in keys) + " |")
-    return "\n".join(lines)
-
-
-def average_rows(results: dict, keys: Sequence[str] = ("aae_deg", "aye_deg", "inclination_deg")) -> str:
-    """Compact text: one line per column with its averages (for logs and reports)."""
-    lines = [f"{'column':<28s} " + " ".join(f"{k:>16s}" for k in keys)]
-    for name, m in results["methods"].items():
-        mean = m.get("mean", {})
-        lines.append(f"{name:<28s} " + " ".join(
-            f"{'—' if mean.get(k) is None else format(mean[k], '.2f'):>16s}" for k in keys))
-    return "\n".join(lines)
-
-
 # ===========================================================================
 # Hydra entry points
 # ===========================================================================
@@ -517,14 +438,9 @@ def _plain(v):
 
 
 def _default_out(cfg, kind: str) -> Path:
-    if cfg.get("out"):
-        return Path(str(cfg.out))
-    try:
-        from hydra.core.hydra_config import HydraConfig
+    from .cli import output_dir
 
-        return Path(HydraConfig.get().runtime.output_dir)
-    except Exception:  # noqa: BLE001
-        return Path("runs") / kind / str(cfg.data.name) / time.strftime("%Y-%m-%d_%H-%M-%S")
+    return output_dir(cfg.get("out"), Path("runs") / kind / str(cfg.data.name))
 
 
 def _tune_data_cfg(cfg):

@@ -5,7 +5,6 @@
 * :func:`train_main(cfg)` — ``scripts/train.py``: build data + model, fit (best-validation and
   ``last.ckpt`` written atomically), then evaluate the best checkpoint on held-out recordings
   with the evaluation runner (:func:`tcn_ahrs.evaluate.evaluate`) and print the table.
-* :func:`evaluate_main(cfg)` — ``scripts/evaluate.py``: evaluate a checkpoint.
 """
 from __future__ import annotations
 
@@ -22,12 +21,13 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import so3
-from .checkpoint import (AtomicCheckpointIO, CheckpointError, check_layout, checkpoint_meta, layout_meta,
+from .checkpoint import (AtomicCheckpointIO, CheckpointError, check_layout, layout_meta,
                          load_checkpoint)
 from .data import AHRSDataModule, augment
 from .losses import attitude_loss, increment_loss
 from .model.ahrs import LearnedAHRS
-from .validate import check_number
+from .cli import output_dir
+from .validate import check_keys, check_number
 
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
@@ -238,12 +238,6 @@ def _plain(cfg) -> Any:
     return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
 
 
-def check_keys(section: Mapping, allowed: set, where: str) -> None:
-    unknown = set(section) - allowed
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed)}")
-
-
 # (type, lower bound, lower bound included, upper bound exclusive) of the numeric train.* keys
 TRAIN_VALUES = {"window": (int, 2, True, None), "stride": (int, 1, True, None),
                 "batch_size": (int, 1, True, None), "epochs": (int, 1, True, None),
@@ -338,13 +332,7 @@ def build_trainer(cfg, run_dir: Path, monitor: str, callbacks_extra=()) -> pl.Tr
 
 
 def _run_dir(cfg) -> Path:
-    if cfg.get("run_dir"):
-        return Path(str(cfg.run_dir))
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        return Path(HydraConfig.get().runtime.output_dir)
-    except Exception:  # noqa: BLE001
-        return Path("runs") / time.strftime("%Y-%m-%d_%H-%M-%S")
+    return output_dir(cfg.get("run_dir"), Path("runs"))
 
 
 # ================================================================== entry points
@@ -450,45 +438,3 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
         print_table(res)
         result["results"] = res
     return result
-
-
-EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor"}
-
-
-def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
-    """``scripts/evaluate.py``: the learned estimator + Raw IMU (+ ``baselines``) on
-    ``load_split(data, data.split)``; writes results.json/.md, plots, TUM trajectories."""
-    from .datasets import load_split
-    from .estimators.learned import LearnedEstimator
-    from .evaluate import evaluate, print_table
-
-    check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    if not cfg.get("ckpt"):
-        raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
-    ck = load_checkpoint(cfg.ckpt)
-    axes = int(cfg.data.get("axes", 9))
-    if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
-        # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
-        print(f"note: {cfg.ckpt} is a 6-axis model: the magnetometer is not used and every method "
-              "is scored as 6-axis (heading relative to the start)")
-        axes = 6
-    check_layout(ck, axes, cfg.ckpt)
-    seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
-    if not seqs:
-        raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
-                         f"'{cfg.data.split}' (root {cfg.data.get('root')})")
-    out = cfg.get("out") or str(_run_dir(cfg))
-    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
-                               reanchor=cfg.get("reanchor"))
-    from .estimators.registry import baseline_estimators, load_plugins
-
-    load_plugins(cfg.get("plugins"))
-    estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
-    res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),
-                   plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
-                   align=bool(cfg.get("align", True)))
-    print(f"results in {out}")
-    print_table(res)
-    return res

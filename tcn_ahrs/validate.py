@@ -24,3 +24,10 @@ def check_number(value: Any, key: str, kind=float, low: Optional[float] = None, 
     if (low is not None and (v < low or (v == low and not low_ok))) or (high is not None and v >= high):
         raise ValueError(f"{key}: expected {want}, got {value!r}")
     return v
+
+
+def check_keys(section, allowed: set, where: str) -> None:
+    """A config section's keys must be among ``allowed`` (a misspelt key is an error, not ignored)."""
+    unknown = set(section) - set(allowed)
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed)}")

@@ -24,7 +24,8 @@ def _options(group):
 @pytest.mark.parametrize("experiment", _options("experiment"))
 def test_every_experiment_composes_and_builds_its_model(experiment):
     from tcn_ahrs.model.ahrs import LearnedAHRS
-    from tcn_ahrs.train import TRAIN_KEYS, check_keys, check_train_values
+    from tcn_ahrs.train import TRAIN_KEYS, check_train_values
+    from tcn_ahrs.validate import check_keys
 
     cfg = _compose("train", [f"experiment={experiment}"])
     check_keys(cfg.train, TRAIN_KEYS, "train")
@@ -56,7 +57,7 @@ def test_every_data_option_composes_with_every_script(data):
 
 def test_script_key_checks_accept_their_own_yaml():
     from tcn_ahrs.compare import BENCHMARK_KEYS, COMPARE_KEYS
-    from tcn_ahrs.train import EVAL_KEYS
+    from tcn_ahrs.evaluate.main import EVAL_KEYS
 
     top = lambda cfg: set(cfg) - {"data", "hydra"}  # noqa: E731
     assert top(_compose("compare")) <= COMPARE_KEYS

@@ -1,0 +1,54 @@
+"""``scripts/evaluate.py``: a checkpoint (+ Raw IMU and ``baselines``) through the runner."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Dict
+
+import torch
+from omegaconf import DictConfig
+
+from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
+from ..cli import output_dir
+from ..validate import check_keys
+from .reports import print_table
+from .runner import evaluate
+
+EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor"}
+
+
+def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
+    """``scripts/evaluate.py``: the learned estimator + Raw IMU (+ ``baselines``) on
+    ``load_split(data, data.split)``; writes results.json/.md, plots, TUM trajectories."""
+    from ..datasets import load_split
+    from ..estimators.learned import LearnedEstimator
+
+    check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    if not cfg.get("ckpt"):
+        raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
+    ck = load_checkpoint(cfg.ckpt)
+    axes = int(cfg.data.get("axes", 9))
+    if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
+        # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
+        print(f"note: {cfg.ckpt} is a 6-axis model: the magnetometer is not used and every method "
+              "is scored as 6-axis (heading relative to the start)")
+        axes = 6
+    check_layout(ck, axes, cfg.ckpt)
+    seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
+    if not seqs:
+        raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
+                         f"'{cfg.data.split}' (root {cfg.data.get('root')})")
+    out = str(output_dir(cfg.get("out") or cfg.get("run_dir"), Path("runs") / "evaluate"))
+    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
+                               reanchor=cfg.get("reanchor"))
+    from ..estimators.registry import baseline_estimators, load_plugins
+
+    load_plugins(cfg.get("plugins"))
+    estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
+    res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),
+                   plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
+                   align=bool(cfg.get("align", True)))
+    print(f"results in {out}")
+    print_table(res)
+    return res
