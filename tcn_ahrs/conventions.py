@@ -20,6 +20,7 @@ publishers' conventions to them (and nowhere else does any conversion happen).
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 GRAVITY = 9.81
 """Magnitude of gravity in m/s^2 used for plausibility checks and simulation."""
@@ -31,6 +32,20 @@ EAST_NAV = np.array([1.0, 0.0, 0.0])
 NORTH_NAV = np.array([0.0, 1.0, 0.0])
 
 DEG = np.pi / 180.0
+
+# ---------------------------------------------------------------- numerics: one float policy
+# Where precision matters is where values are multiplied or summed over many samples: attitude and
+# position integration (products of 10^4-10^6 rotations) and the loss's rotation increments.
+# The networks' inputs and outputs are O(1) and tolerate float32, which halves their cost.
+STORAGE_DTYPE = np.float64
+"""Recordings (:class:`~tcn_ahrs.sequence.ImuSequence` arrays, ground truth) as loaded and stored."""
+STATE_DTYPE = torch.float64
+"""Every filter state and integration: classical filters, raw integration, the learned closed loop
+at evaluation and export, the navigation filters."""
+NETWORK_DTYPE = torch.float32
+"""The TCNs, in training and inference (the export's ``net_dtype`` default)."""
+LOSS_DTYPE = torch.float64
+"""Products of rotation increments inside the training losses (Eq. 28)."""
 
 # ---------------------------------------------------------------------------
 # Quaternion component order

@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from . import so3
+from .conventions import LOSS_DTYPE
 
 
 def window_products(rot: Tensor, j: int) -> Tensor:
@@ -51,7 +52,7 @@ def window_products(rot: Tensor, j: int) -> Tensor:
     return result[..., :n_out, :, :]
 
 
-def predicted_increments(omega: Tensor, dt: Tensor, j: int, dtype=torch.float64) -> Tensor:
+def predicted_increments(omega: Tensor, dt: Tensor, j: int, dtype=LOSS_DTYPE) -> Tensor:
     """δĈ_{i,i+j} for i = 0..N-1-j from body rates omega (B, N, 3), dt (B, N): sample k moves
     the attitude from k-1 to k, so the increment from i to i+j uses samples i+1..i+j.
     Returns (B, N-j, 3, 3) in ``dtype``."""
@@ -74,7 +75,7 @@ def increment_valid(valid: Tensor, j: int) -> Tensor:
 
 def increment_loss(omega: Tensor, dt: Tensor, nav_from_body_gt: Tensor, valid: Tensor,
                    js: Sequence[int] = (16, 32), huber_delta: float = 0.005,
-                   dtype=torch.float64) -> Tensor:
+                   dtype=LOSS_DTYPE) -> Tensor:
     """Eq. 28: Σ_j mean over valid increments and components of Huber(Log(δC_gt^T δĈ))/δ.
 
     Args:

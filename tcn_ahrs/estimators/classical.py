@@ -40,6 +40,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
+from ..conventions import STATE_DTYPE
 from ..filters import ecf, eskf, madgwick, mahony
 from ..filters.common import magnetic_from_nav, triad_quat
 from ..sequence import ImuSequence
@@ -70,7 +71,7 @@ class ClassicalEstimator:
     label: Optional[str] = None
     heading_ref: str = "init"  # "init" | "north"
     device: str = "cpu"
-    dtype: torch.dtype = torch.float64
+    dtype: torch.dtype = STATE_DTYPE
 
     method: ClassVar[str] = "classical"
     heading_free: ClassVar[bool] = False

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from .. import so3
+from ..conventions import NETWORK_DTYPE
 from ..checkpoint import CheckpointError, model_from_checkpoint
 from ..model.ahrs import LearnedAHRS
 from ..sequence import ImuSequence
@@ -25,7 +26,7 @@ def model_input(model: LearnedAHRS, seq: ImuSequence, device, what: str = "model
             f"{seq.source}: field 'mag': the {what} (variant '{model.variant}') expects 9-axis input but "
             f"recording {seq.name!r} has no magnetometer; use a 6-axis checkpoint")
     parts = [seq.gyro, seq.accel] + ([seq.mag] if model.axes == 9 else [])
-    return torch.as_tensor(np.concatenate(parts, 1), dtype=torch.float32, device=device)[None]
+    return torch.as_tensor(np.concatenate(parts, 1), dtype=NETWORK_DTYPE, device=device)[None]
 
 
 class LearnedEstimator:

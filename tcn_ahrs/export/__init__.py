@@ -55,6 +55,7 @@ import torch
 from torch import nn
 
 from .. import __version__
+from ..conventions import NETWORK_DTYPE
 from .closed_loop import ClosedLoopBatch, ClosedLoopStreaming
 from .fused import _hamilton_table, fuse_model, quat_cumprod, quat_integrate
 from .inputs import ExportError
@@ -79,7 +80,7 @@ def file_sha256(path) -> str:
 
 
 def build_metadata(model: nn.Module, mode: str, meta: Optional[Mapping[str, Any]] = None,
-                   net_dtype: torch.dtype = torch.float32) -> Dict[str, Any]:
+                   net_dtype: torch.dtype = NETWORK_DTYPE) -> Dict[str, Any]:
     """The exported file's self-description (plain JSON types). ``meta`` adds or overrides
     entries (``rate_hz``, ``checkpoint``, ``checkpoint_sha256``, ``model_config``, ``data``)."""
     axes = int(model.axes)
@@ -151,14 +152,14 @@ def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str
 
 
 def export_batch(model: nn.Module, path, meta: Optional[Mapping[str, Any]] = None,
-                 net_dtype: torch.dtype = torch.float32):
+                 net_dtype: torch.dtype = NETWORK_DTYPE):
     """Script ``model`` (a :class:`LearnedAHRS`, eval mode) as a :class:`BatchAHRS` and save it
     to ``path`` (with ``metadata.json``). Returns the scripted module."""
     return _export(BatchAHRS, model, path, meta, net_dtype, "batch")
 
 
 def export_streaming(model: nn.Module, path, meta: Optional[Mapping[str, Any]] = None,
-                     net_dtype: torch.dtype = torch.float32):
+                     net_dtype: torch.dtype = NETWORK_DTYPE):
     """Script ``model`` as a :class:`StreamingAHRS` and save it to ``path``. Returns the module."""
     return _export(StreamingAHRS, model, path, meta, net_dtype, "streaming")
 

@@ -21,11 +21,11 @@ import torch
 from torch import Tensor
 
 from .. import so3
-from ..conventions import enu_from_frame
+from ..conventions import STATE_DTYPE, enu_from_frame
 
 Number = Union[float, int, Tensor, np.ndarray]
 
-DEFAULT_DTYPE = torch.float64
+DEFAULT_DTYPE = STATE_DTYPE  # conventions.STATE_DTYPE: the one float policy
 
 
 def to_tensor(x, dtype: Optional[torch.dtype] = None, device=None) -> Tensor:

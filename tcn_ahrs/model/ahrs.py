@@ -28,6 +28,7 @@ import torch
 from torch import Tensor, nn
 
 from .. import so3
+from ..conventions import STATE_DTYPE
 from .calibration import Calibration
 from .closed_loop import ClosedLoopFilter
 from .ecf import OpenLoopECF
@@ -217,7 +218,7 @@ class LearnedAHRS(nn.Module):
 
     def _run_closed(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int) -> Dict[str, Tensor]:
         n = imu.shape[1]
-        out = self.filter_closed_loop(imu, dt, r0.to(torch.float64), context=start, dtype=torch.float64)
+        out = self.filter_closed_loop(imu, dt, r0.to(STATE_DTYPE), context=start, dtype=STATE_DTYPE)
         rot = out.pop("rot")
         rot = torch.cat([r0.to(torch.float64).unsqueeze(1).expand(-1, start, 3, 3), rot], 1)
         omega = out["gyro"].to(torch.float64).clone()
