@@ -43,7 +43,6 @@ heading are ``null``); ``inclination_deg`` is reported for every method.
 from __future__ import annotations
 
 import json
-import math
 import sys
 import time
 import warnings
@@ -56,6 +55,7 @@ import torch
 
 from .estimators import registry
 from .evaluate.reports import average_rows, compare_markdown
+from .evaluate.runner import jsonable
 from .sequence import ImuSequence
 
 VARIANTS = ("default", "tuned")
@@ -205,21 +205,6 @@ def tuning_clips(seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.
     return clips, record
 
 
-def _jsonable(v):
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (np.floating, float)):
-        v = float(v)
-        return v if math.isfinite(v) else None
-    if isinstance(v, np.integer):
-        return int(v)
-    if isinstance(v, torch.Tensor):
-        return _jsonable(v.tolist())
-    return v
-
-
 def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.0,
                  lead_seconds: float = 10.0, max_recordings: Optional[int] = None, max_batch: int = 128,
                  device: str = "cpu", verbose: bool = True) -> dict:
@@ -265,14 +250,14 @@ def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], 
             default = {k: getattr(est, k) for k in best}
         else:
             default = {}
-        d_row = next((r for r in table if all(_jsonable(r["params"].get(k)) == _jsonable(v) for k, v in default.items())
+        d_row = next((r for r in table if all(jsonable(r["params"].get(k)) == jsonable(v) for k, v in default.items())
                       and default), None)
         record["methods"][s.name] = {
-            "params": _jsonable(best), "score_aae_deg": _jsonable(table[0]["score"]),
+            "params": jsonable(best), "score_aae_deg": jsonable(table[0]["score"]),
             "grid_size": len(table), "time_s": round(dt, 2),
-            "default_params": _jsonable(default) if default else "authors' defaults (see estimators/peers.py)",
-            "default_in_grid_score_aae_deg": _jsonable(d_row["score"]) if d_row else None,
-            "top": _jsonable(table[:3]),
+            "default_params": jsonable(default) if default else "authors' defaults (see estimators/peers.py)",
+            "default_in_grid_score_aae_deg": jsonable(d_row["score"]) if d_row else None,
+            "top": jsonable(table[:3]),
         }
     return record
 
@@ -370,7 +355,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
     estimators = [getattr(e, "inner", e) for e in estimators]
     res["tuning"] = tuning
     res["columns"] = {s.name: {"method": s.method, "axes": s.axes, "variant": s.variant,
-                               "params": _jsonable(s.params), "ckpt": s.ckpt,
+                               "params": jsonable(s.params), "ckpt": s.ckpt,
                                "heading_free": bool(getattr(e, "heading_free", False))}
                       for s, e in zip(specs, estimators)}
     res["ablation"] = [k for k in ablation if k in res["methods"]]

@@ -18,15 +18,22 @@ from .files import plot_recording, safe_name, write_tum
 from .reports import METRIC_KEYS, results_markdown
 
 
-def _clean(v):
-    """NaN/inf -> None, numpy scalars -> Python (so the dict is valid JSON as it is)."""
+def jsonable(v):
+    """The one JSON sanitiser of results: NaN/inf -> None, numpy scalars and tensors -> Python,
+    through dicts, lists and tuples (so a results dict is valid JSON as it is)."""
+    if isinstance(v, dict):
+        return {str(k): jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [jsonable(x) for x in v]
     if isinstance(v, (np.floating, float)):
         v = float(v)
         return v if math.isfinite(v) else None
-    if isinstance(v, np.integer):
-        return int(v)
     if isinstance(v, np.bool_):
         return bool(v)
+    if isinstance(v, np.integer):
+        return int(v)
+    if hasattr(v, "tolist") and callable(v.tolist):  # tensors and arrays
+        return jsonable(v.tolist())
     return v
 
 
@@ -150,7 +157,7 @@ def evaluate(
                    "axes": seq_in.num_axes, **m, "run_time_s": run_time}
             if heading_free:
                 row["heading_free"] = True
-            methods[est.name]["recordings"].append({k: _clean(v) for k, v in row.items()})
+            methods[est.name]["recordings"].append({k: jsonable(v) for k, v in row.items()})
             if verbose:
                 print(f"{est.name:>20s} {seq.name:<45s} AAE {m['aae_deg']:8.3f}  AYE {m['aye_deg']:8.3f}  "
                       f"incl {m['inclination_deg']:8.3f}", file=sys.stderr)
