@@ -156,15 +156,22 @@ def odometry_eskf(acc: Tensor, gyro: Tensor, dt: Tensor, v_left: Tensor, v_right
     ps, vs, rs, stds = [p], [v], [rot], [torch.diagonal(P, dim1=-2, dim2=-1)[:, :3].sqrt()]
     for k in range(1, n):
         p, v, rot, P = predict(p, v, rot, P, acc[:, k], gyro[:, k], dt[:, k], noise, gravity)
-        # both rows where encoders and magnetometer report, attitude only where just the magnetometer
-        r, H, R = _observation(rot, v, vel_meas[:, k], rot_meas[:, k], noise)
-        dx_full, P_full = kalman_update(P, r, H, R)
-        r, H, R = _observation(rot, v, None, rot_meas[:, k], noise)
-        dx_att, P_att = kalman_update(P, r, H, R)
+        # both rows where encoders and magnetometer report, attitude only where just the magnetometer;
+        # each update is computed only when some run of the batch needs it (the common case: one)
         both = (enc_ok[:, k] & m_ok[:, k])[:, None]
         att = (m_ok[:, k] & ~enc_ok[:, k])[:, None]
-        dx = torch.where(both, dx_full, torch.where(att, dx_att, torch.zeros_like(dx_full)))
-        P = torch.where(both[..., None], P_full, torch.where(att[..., None], P_att, P))
+        dx, P_new = p.new_zeros(B, 9), P
+        if bool(att.any()):
+            r, H, R = _observation(rot, v, None, rot_meas[:, k], noise)
+            dx_att, P_att = kalman_update(P, r, H, R)
+            dx = torch.where(att, dx_att, dx)
+            P_new = torch.where(att[..., None], P_att, P_new)
+        if bool(both.any()):
+            r, H, R = _observation(rot, v, vel_meas[:, k], rot_meas[:, k], noise)
+            dx_full, P_full = kalman_update(P, r, H, R)
+            dx = torch.where(both, dx_full, dx)
+            P_new = torch.where(both[..., None], P_full, P_new)
+        P = P_new
         p, v, rot, P = correct(p, v, rot, P, dx)
         ps.append(p)
         vs.append(v)
