@@ -45,164 +45,21 @@ from __future__ import annotations
 import json
 import sys
 import time
-import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
+from typing import Dict, Mapping, Optional, Sequence, Tuple
 
-import numpy as np
 import torch
 
+from .columns import VARIANTS, MethodSpec, build_estimators, default_methods, method_specs  # noqa: F401  (re-exported)
 from .estimators import registry
 from .evaluate.reports import average_rows, compare_markdown
 from .evaluate.runner import jsonable
 from .sequence import ImuSequence
 
-VARIANTS = ("default", "tuned")
-TUNED_SUFFIX = " (tuned)"
-
-
-def default_methods(peers: bool = False) -> List[str]:
-    """Every registered raw and classical method (and, with ``peers``, every peer)."""
-    kinds = ("raw", "classical") + (("peer",) if peers else ())
-    return [m for k in kinds for m in registry.methods(k)]
-
-
-# ===========================================================================
-# method specs
-# ===========================================================================
-
-
-@dataclass
-class MethodSpec:
-    """One column of the comparison before it is built.
-
-    name: column label (``"vqf9d"``, ``"vqf9d (tuned)"``, a checkpoint label);
-    method: registry name (``"vqf"``) or ``"learned"``; axes: 6/9 (None: raw/learned);
-    variant: ``"default"`` | ``"tuned"``; params: constructor keyword arguments
-    (tuned ones filled in by :func:`tune_methods`); ckpt: checkpoint path for learned ones.
-    """
-
-    name: str
-    method: str
-    axes: Optional[int] = None
-    variant: str = "default"
-    params: Dict[str, Any] = field(default_factory=dict)
-    ckpt: Optional[str] = None
-
-    @property
-    def kind(self) -> str:
-        return registry.get(self.method).kind
-
-
-def method_specs(methods: Sequence[str], data_axes: int = 9, both_axes: bool = True,
-                 variants: Sequence[str] = ("default",), ckpts: Optional[Mapping[str, str]] = None) -> List[MethodSpec]:
-    """The columns to compare, in order: for each method, each axes variant (9D first), each
-    parameter variant (``tuned`` only for methods with a grid); then the checkpoints.
-
-    Raises ``ValueError`` for an unknown method name or variant.
-    """
-    data_axes = int(data_axes)
-    if data_axes not in (6, 9):
-        raise ValueError(f"data.axes: expected 6 or 9, got {data_axes!r}")
-    known = [m for m in registry.methods() if registry.get(m).kind != "learned"]
-    bad = [m for m in methods if m not in known]
-    if bad:
-        raise ValueError(f"methods: unknown method(s) {bad}; expected names among {known} "
-                         "(learned models go in ckpts={label: path}; more methods: plugins=[module])")
-    badv = [v for v in variants if v not in VARIANTS]
-    if badv or not variants:
-        raise ValueError(f"variants: expected a non-empty subset of {list(VARIANTS)}, got {list(variants)}")
-    axes_list = [9, 6] if (data_axes == 9 and both_axes) else [data_axes]
-    specs: List[MethodSpec] = []
-    for m in dict.fromkeys(methods):
-        entry = registry.get(m)
-        if entry.kind == "raw":
-            specs.append(MethodSpec("Raw IMU", m))
-            continue
-        for ax in axes_list:
-            if ax not in entry.axes:
-                continue
-            for v in variants:
-                if v == "tuned" and not entry.tunable:
-                    continue
-                specs.append(MethodSpec(f"{m}{ax}d" + (TUNED_SUFFIX if v == "tuned" else ""), m, ax, v))
-    for label, path in (ckpts or {}).items():
-        specs.append(MethodSpec(str(label), "learned", ckpt=str(path)))
-    names = [s.name for s in specs]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ValueError(f"duplicate column names {dup}: checkpoint labels must differ from method columns")
-    return specs
-
-
-def build_estimator(spec: MethodSpec, device: str = "cpu", reanchor: Optional[int] = None):
-    """The estimator of one spec (raises :class:`~tcn_ahrs.estimators.peers.PeerUnavailable`
-    when a peer's library is missing)."""
-    kind = spec.kind
-    if kind == "learned":
-        return registry.build("learned", label=spec.name, ckpt=spec.ckpt, device=device, reanchor=reanchor)
-    if kind == "raw":
-        return registry.build(spec.method)
-    params = dict(spec.params)
-    if kind == "classical":
-        params["device"] = device
-    return registry.build(spec.method, spec.axes, label=spec.name, **params)
-
-
-def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu",
-                     reanchor: Optional[int] = None) -> Tuple[list, List[MethodSpec]]:
-    """Estimators of ``specs``; peers whose library is missing are skipped with ONE warning
-    naming them. Returns ``(estimators, specs_kept)``."""
-    from .estimators.peers import INSTALL_HINT, PeerUnavailable
-
-    out, kept, missing = [], [], []
-    for s in specs:
-        try:
-            out.append(build_estimator(s, device, reanchor))
-            kept.append(s)
-        except PeerUnavailable as e:
-            missing.append(f"{s.name} ({e})")
-    if missing:
-        warnings.warn(f"peer estimators skipped (library not installed): {'; '.join(missing)}; "
-                      f"install them with: {INSTALL_HINT}", stacklevel=2)
-    return out, kept
-
-
 # ===========================================================================
 # tuning
 # ===========================================================================
-
-
-def tuning_clips(seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.0, lead_seconds: float = 10.0,
-                 max_recordings: Optional[int] = None) -> Tuple[List[ImuSequence], List[dict]]:
-    """The clips tuning runs on, and a record of each (name, source, start_s, duration_s).
-
-    Keeps recordings with scored samples; at most ``max_recordings`` of them, evenly spaced
-    over the list. Each is cut to ``[k0 - lead, k0 - lead + max_seconds]`` with ``k0`` its first
-    scored sample (``max_seconds=None``: the whole recording).
-    """
-    seqs = [s for s in seqs if s.quat is not None and s.scored().any()]
-    if max_recordings is not None and 0 < int(max_recordings) < len(seqs):
-        idx = np.unique(np.round(np.linspace(0, len(seqs) - 1, int(max_recordings))).astype(int))
-        seqs = [seqs[i] for i in idx]
-    clips, record = [], []
-    for s in seqs:
-        if max_seconds is None or max_seconds <= 0:
-            c, start = s, 0
-        else:
-            k0 = int(np.argmax(s.scored()))
-            start = max(0, k0 - int(round(lead_seconds * s.rate)))
-            stop = min(len(s), start + int(round(float(max_seconds) * s.rate)) + 1)
-            c = s.slice(start, stop)
-            if not c.scored().any():
-                continue
-        clips.append(c)
-        record.append({"name": s.name, "source": s.source, "start_s": round(float(s.time[start] - s.time[0]), 3),
-                       "time_range": [round(float(c.time[0]), 3), round(float(c.time[-1]), 3)],
-                       "duration_s": round(c.duration, 3), "n_samples": len(c),
-                       "n_scored": int(c.scored().sum())})
-    return clips, record
 
 
 def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.0,
@@ -217,7 +74,7 @@ def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], 
     "grid_size", "time_s", "top": [best 3 rows]}}}``.
     """
     from .estimators.peers import PeerUnavailable
-    from .tuning import tune_method
+    from .tuning import tune_method, tuning_clips
 
     todo = [s for s in specs if s.variant == "tuned"]
     clips, rec = tuning_clips(tune_seqs, max_seconds, lead_seconds, max_recordings)
@@ -498,7 +355,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
                   extra={"split": split, "tune_split": tune_split if cfg.get("tune") else None,
                          "config": _plain(cfg), "load_s": round(load_s, 2)})
     print(f"results in {out}")
-    print(average_rows(res, ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")))
+    print(average_rows(res))
     return res
 
 

@@ -17,9 +17,8 @@ from typing import Any, Dict, List, Tuple
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-SUMMARY_KEYS = ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
-LABELS = {"aae_deg": "AAE", "aye_deg": "AYE", "ahe_deg": "AHE", "total_deg": "BROAD total",
-          "heading_deg": "BROAD heading", "inclination_deg": "inclination"}
+from .evaluate.reports import label as metric_label
+from .metrics import metric_keys
 
 
 def _fold_cfg(cfg: DictConfig, i: int, run_dir: Path) -> DictConfig:
@@ -50,18 +49,18 @@ def summarize(folds: List[Dict[str, Any]]) -> Dict[str, Dict[str, Dict[str, floa
 
 
 def markdown(result: Dict[str, Any]) -> str:
-    keys = [k for k in SUMMARY_KEYS if any(k in m for m in result["summary"].values())]
+    keys = [k for k in metric_keys() if any(k in m for m in result["summary"].values())]
     lines = [f"# Cross-validation: {result['dataset']} ({len(result['folds'])} folds, leave-recordings-out)\n",
              "Each fold: trained on the other training recordings, checkpoint selected on the fold's "
              "recordings (whole), scored on them (optimistic: selected there), next to the last "
              "epoch's checkpoint (no selection). Degrees; mean ± sample std over folds.\n",
-             "| method | " + " | ".join(LABELS[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
+             "| method | " + " | ".join(metric_label(k, long=True) for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
     for method, m in result["summary"].items():
         cells = [f"{m[k]['mean']:.2f} ± {m[k]['std']:.2f}" if k in m else "—" for k in keys]
         lines.append(f"| {method} | " + " | ".join(cells) + " |")
     for f in result["folds"]:
         lines += [f"\n## Fold {f['fold']}: {', '.join(f['recordings'])}\n",
-                  "| method | " + " | ".join(LABELS[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
+                  "| method | " + " | ".join(metric_label(k, long=True) for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
         for method, means in f["means"].items():
             cells = ["—" if means.get(k) is None else f"{means[k]:.2f}" for k in keys]
             lines.append(f"| {method} | " + " | ".join(cells) + " |")
@@ -166,7 +165,7 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
                       both_axes=False, tune=bool(cv.get("tune")), ckpts=ckpts,
                       out_dir=run_dir / "eval", dataset=str(cfg.data.name),
                       tune_max_seconds_per_recording=cv.get("tune_max_seconds_per_recording"), progress=True)
-        means = {m: {k: v.get("mean", {}).get(k) for k in SUMMARY_KEYS} for m, v in res["methods"].items()}
+        means = {m: {k: v.get("mean", {}).get(k) for k in metric_keys()} for m, v in res["methods"].items()}
         fold_results.append({"fold": int(i), "recordings": [s.name for s in eval_seqs], "checkpoint": str(best),
                              "means": means})
     result = {"dataset": str(cfg.data.name), "folds": fold_results, "summary": summarize(fold_results),

@@ -58,7 +58,8 @@ Estimation", Data 6(7), 2021) — no alignment
 from __future__ import annotations
 
 import math
-from typing import Dict, Optional, Tuple
+from dataclasses import dataclass
+from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
 import torch
@@ -235,7 +236,8 @@ def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align: bool = Tr
         axes:     9 if the estimate used the magnetometer, 6 if not; ``None``: ``seq.num_axes``.
         align:    alignment at the first scored sample for AAE/AYE (BROAD errors never align).
     Returns:
-        ``n_scored``, ``aae_deg``, ``aye_deg``, ``ahe_deg``; plus BROAD's ``total_deg``, ``heading_deg``,
+        ``n_scored``, ``aae_deg``, ``aye_deg``, ``ahe_deg``, every registered extra metric
+        (:func:`register_metric`); plus BROAD's ``total_deg``, ``heading_deg``,
         ``inclination_deg`` (and ``broad_mode``) when the recording has a magnetometer and
         the estimate is 9-axis (``"9d"``), or when the recording carries a benchmark score mask
         (BROAD) and the estimate is 6-axis (``"6d"``, heading offset removed).
@@ -263,4 +265,66 @@ def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align: bool = Tr
         b = broad_errors(seq.quat, qe, m, mode)
         out.update(total_deg=b["total_deg"], heading_deg=b["heading_deg"], inclination_deg=b["inclination_deg"])
         out["broad_mode"] = mode
+    if _EXTRA:
+        qe_np = qe.numpy()
+        for metric in _EXTRA.values():
+            out[metric.key] = float(metric.fn(seq.quat, qe_np, m, align))
     return out
+
+
+# ---------------------------------------------------------------------------
+# the metric table: built-in keys and registered extras
+# ---------------------------------------------------------------------------
+
+BUILTIN_KEYS = ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
+"""The per-recording numbers :func:`sequence_metrics` always computes (the runner adds the
+inclination for every estimate)."""
+
+HEADING_KEYS = ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg")
+"""Numbers that need a heading reference (undefined for heading-free estimators such as RIANN)."""
+
+
+@dataclass(frozen=True)
+class Metric:
+    """A registered extra metric: ``fn(q_gt, q_est, mask, align) -> float`` in degrees (the
+    signature of :func:`aae`), ``label`` its table heading; ``needs_heading``: NaN for
+    heading-free estimators."""
+
+    key: str
+    label: str
+    fn: Callable
+    needs_heading: bool = True
+
+
+_EXTRA: Dict[str, Metric] = {}
+
+
+def register_metric(key: str, label: Optional[str] = None, needs_heading: bool = True):
+    """Decorator: a new metric in one file. ``key`` ends in ``_deg`` (every table is in degrees);
+    the module is imported through the configs' ``plugins`` list, and the metric then appears in
+    every results.json, table and mean of ``evaluate``, ``compare`` and ``benchmark``::
+
+        @register_metric("p95_deg", "P95")
+        def p95(q_gt, q_est, mask=None, align=True):
+            angle, _ = attitude_errors(q_gt, q_est, mask, align)
+            return float(np.degrees(np.percentile(angle[mask], 95)))
+    """
+    if not key.endswith("_deg"):
+        raise ValueError(f"register_metric: key {key!r} must end in '_deg' (every table is in degrees)")
+
+    def deco(fn):
+        if key in BUILTIN_KEYS:
+            raise ValueError(f"register_metric: {key!r} is a built-in metric")
+        _EXTRA[key] = Metric(key, label or key[:-4], fn, needs_heading)
+        return fn
+
+    return deco
+
+
+def metric_keys() -> Tuple[str, ...]:
+    """Every averaged per-recording metric: the built-ins, then the registered extras."""
+    return BUILTIN_KEYS + tuple(_EXTRA)
+
+
+def extra_metrics() -> Tuple[Metric, ...]:
+    return tuple(_EXTRA.values())

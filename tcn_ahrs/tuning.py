@@ -222,3 +222,34 @@ def tune_gradient(
         opt.step()
         history.append(float(loss.detach()))
     return {k: float(torch.exp(v.detach())) for k, v in logp.items()}, history
+
+
+def tuning_clips(seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.0, lead_seconds: float = 10.0,
+                 max_recordings: Optional[int] = None) -> Tuple[List[ImuSequence], List[dict]]:
+    """The clips tuning runs on, and a record of each (name, source, start_s, duration_s).
+
+    Keeps recordings with scored samples; at most ``max_recordings`` of them, evenly spaced
+    over the list. Each is cut to ``[k0 - lead, k0 - lead + max_seconds]`` with ``k0`` its first
+    scored sample (``max_seconds=None``: the whole recording).
+    """
+    seqs = [s for s in seqs if s.quat is not None and s.scored().any()]
+    if max_recordings is not None and 0 < int(max_recordings) < len(seqs):
+        idx = np.unique(np.round(np.linspace(0, len(seqs) - 1, int(max_recordings))).astype(int))
+        seqs = [seqs[i] for i in idx]
+    clips, record = [], []
+    for s in seqs:
+        if max_seconds is None or max_seconds <= 0:
+            c, start = s, 0
+        else:
+            k0 = int(np.argmax(s.scored()))
+            start = max(0, k0 - int(round(lead_seconds * s.rate)))
+            stop = min(len(s), start + int(round(float(max_seconds) * s.rate)) + 1)
+            c = s.slice(start, stop)
+            if not c.scored().any():
+                continue
+        clips.append(c)
+        record.append({"name": s.name, "source": s.source, "start_s": round(float(s.time[start] - s.time[0]), 3),
+                       "time_range": [round(float(c.time[0]), 3), round(float(c.time[-1]), 3)],
+                       "duration_s": round(c.duration, 3), "n_samples": len(c),
+                       "n_scored": int(c.scored().sum())})
+    return clips, record

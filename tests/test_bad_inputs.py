@@ -251,8 +251,6 @@ def test_a_misspelt_sidecar_key_is_an_error_with_the_near_match(tmp_path):
 def test_fixed_period_peers_refuse_irregular_time_steps(peer):
     from dataclasses import replace
 
-    import numpy as np
-
     from tcn_ahrs.datasets.simulate import simulate
     from tcn_ahrs.estimators import registry
 

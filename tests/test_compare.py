@@ -12,6 +12,7 @@ from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
 from tcn_ahrs import compare as cmp
+from tcn_ahrs import tuning
 from tcn_ahrs.conventions import quat_xyzw_to_wxyz
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.estimators.base import EstimatorOutput, initial_quat
@@ -94,7 +95,7 @@ def test_tuning_clips_start_before_first_scored_sample(sims):
     mask[400:] = True  # "movement" starts at 8 s
     from dataclasses import replace
     s2 = replace(s, score_mask=mask, meta=dict(s.meta))
-    clips, rec = cmp.tuning_clips([s2, sims[1], sims[2]], max_seconds=5.0, lead_seconds=2.0, max_recordings=2)
+    clips, rec = tuning.tuning_clips([s2, sims[1], sims[2]], max_seconds=5.0, lead_seconds=2.0, max_recordings=2)
     assert [r["name"] for r in rec] == [s2.name, sims[2].name]  # evenly spaced: first and last
     assert rec[0]["start_s"] == pytest.approx(6.0)
     assert clips[0].duration == pytest.approx(5.0)
@@ -265,8 +266,10 @@ def test_ablation_table_layout(sims, tmp_path, monkeypatch):
         def __init__(self, name):
             self.name = name
 
-    real_build = cmp.build_estimator
-    monkeypatch.setattr(cmp, "build_estimator",
+    from tcn_ahrs import columns
+
+    real_build = columns.build_estimator
+    monkeypatch.setattr(columns, "build_estimator",
                         lambda spec, device="cpu", reanchor=None: (Fake(spec.name) if spec.kind == "learned"
                                                                    else real_build(spec, device, reanchor)))
     abl = {"full": "a.ckpt", "w/o mag term": "b.ckpt", "w/o acc term": "c.ckpt", "w/o both": "d.ckpt"}
@@ -435,3 +438,75 @@ def test_a_new_filter_is_one_file_and_one_config_entry(config, tmp_path, monkeyp
     # it holds its start, so on a rotating recording it is worse than every real filter
     mean = {k: v["mean"]["aae_deg"] for k, v in res["methods"].items()}
     assert mean["hold9d"] > mean["ecf9d"]
+
+
+DATASET_PLUGIN = '''"""A dataset of one's own, added the way a user adds one: this file and `data.name=...`."""
+from pathlib import Path
+
+import numpy as np
+
+from tcn_ahrs.sequence import ImuSequence
+
+
+def list_recordings(root):
+    return sorted(p.stem for p in Path(root).glob("*.npz"))
+
+
+def load_recording(root, name):
+    f = np.load(Path(root) / f"{name}.npz")
+    return ImuSequence(name=name, source=str(Path(root) / f"{name}.npz"), time=f["t"], gyro=f["gyro"],
+                       accel=f["accel"], mag=f["mag"], quat=f["quat"], rate=float(f["rate"]),
+                       meta={"dataset": "npz_folder"})
+'''
+
+METRIC_PLUGIN = '''"""A metric of one's own: this file and `plugins=[...]`."""
+import numpy as np
+
+from tcn_ahrs.metrics import attitude_errors, register_metric
+
+
+@register_metric("p95_deg", "P95")
+def p95(q_gt, q_est, mask=None, align=True):
+    angle, _ = attitude_errors(q_gt, q_est, mask, align)
+    return float(np.degrees(np.percentile(angle[mask], 95)))
+'''
+
+
+@pytest.mark.parametrize("config", ["compare", "benchmark"])
+def test_a_new_dataset_and_a_new_metric_are_one_file_and_one_config_entry(config, tmp_path, monkeypatch, capsys):
+    """Issue 9's yardstick for datasets and metrics: a loader module named by `data.name` and a
+    metric module named in `plugins` reach compare's and benchmark's output, nothing else edited."""
+    from hydra import compose, initialize_config_dir
+
+    from tcn_ahrs import metrics
+
+    (tmp_path / "npz_folder.py").write_text(DATASET_PLUGIN)
+    (tmp_path / "my_p95.py").write_text(METRIC_PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(metrics, "_EXTRA", {})  # the registration stays in this test
+    for mod in ("npz_folder", "my_p95"):
+        monkeypatch.delitem(sys.modules, mod, raising=False)
+    rec = tmp_path / "recs"
+    rec.mkdir()
+    for seed in (1, 2):
+        seq = simulate("fast_rotation", 20.0, 50.0, seed=seed)
+        np.savez(rec / f"run{seed}.npz", t=seq.time, gyro=seq.gyro, accel=seq.accel, mag=seq.mag, quat=seq.quat,
+                 rate=seq.rate)
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config, overrides=["data=generic", "data.name=npz_folder", f"data.root={rec}", "data.split=all",
+                                         "peers=false", "methods=[raw,ecf]", "plugins=[my_p95]",
+                                         f"out={tmp_path / 'out'}"])
+    res = cmp.compare_main(cfg, cmp.BENCHMARK_KEYS if config == "benchmark" else cmp.COMPARE_KEYS, kind=config)
+    assert res["recordings"] == ["run1", "run2"]
+    p95 = {k: v["mean"].get("p95_deg") for k, v in res["methods"].items()}
+    assert set(p95) >= {"Raw IMU", "ecf9d"} and all(v is not None for v in p95.values())
+    # the 95th percentile of the error angle lies above its RMS for a drifting integration
+    assert p95["Raw IMU"] > res["methods"]["Raw IMU"]["mean"]["aae_deg"] * 0.9
+    assert "p95_deg" in capsys.readouterr().out  # the terminal summary of averages
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "P95" in md and "Further metrics" in md
+    with pytest.raises(Exception, match="unknown dataset 'no_such_module'"):
+        from tcn_ahrs.datasets import loader
+
+        loader("no_such_module")

@@ -1,7 +1,6 @@
 """TorchScript export: eager model == scripted batch == streaming (sample by sample), the saved
 files load and run with torch alone, metadata, and clear errors for bad checkpoints/inputs."""
 import json
-import math
 import os
 import subprocess
 import sys

@@ -1,7 +1,6 @@
 """Export of the learned closed loop (the default model): the scripted batch and streaming
 modules compute what evaluation computes (LearnedAHRS.run_sequence), after torch.jit.save /
 torch.jit.load, and a streaming module's reset() starts a second recording exactly as fresh."""
-import math
 
 import pytest
 import torch

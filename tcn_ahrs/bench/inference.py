@@ -128,7 +128,7 @@ def _latency_row(name: str, ns: List[int], threads: int) -> Dict[str, Any]:
 
 def _riann_rows(p, n, rate, seed, threads) -> List[Dict[str, Any]]:
     try:
-        from ..estimators.peers import RIANNEstimator
+        from ..estimators.peers_riann import RIANNEstimator
 
         est = RIANNEstimator(axes=6)
     except Exception as e:  # noqa: BLE001

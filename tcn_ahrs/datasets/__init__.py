@@ -3,7 +3,8 @@
 Each real-data module (``broad``, ``euroc``, ``tumvi``, ``oxiod``, ``generic``) exposes
 ``list_recordings(root) -> list[str]`` and ``load_recording(root, name) -> ImuSequence``;
 ``simulate`` (the embedded default) exposes ``load_split(data_cfg, split)``. Adding a dataset =
-one module with those two functions + one ``conf/data/<name>.yaml``; nothing here changes.
+one module with those two functions (here, or anywhere importable: ``name: my_pkg.my_dataset``)
++ one ``conf/data/<name>.yaml``; nothing here changes.
 
 Data configuration (``conf/data/<name>.yaml``; ``data/README.md`` documents each)::
 
@@ -26,13 +27,11 @@ import numpy as np
 
 from ..sequence import DataError, ImuSequence, ground_truth_agreement, rest_mask
 
-REAL_DATASETS = ("broad", "euroc", "tumvi", "oxiod", "generic", "rosbag")
-DATASETS = REAL_DATASETS + ("simulated",)
 SPLITS = ("train", "val", "trainval", "test", "all")
 _REPO_ROOT = Path(__file__).resolve().parents[2]
 
 __all__ = ["load_split", "list_recordings", "loader", "resolve_root", "split_recording", "summarize",
-           "gt_gaps", "DATASETS", "SPLITS"]
+           "gt_gaps", "builtin_datasets", "SPLITS"]
 
 
 def _get(cfg: Mapping, key: str, default: Any = None) -> Any:
@@ -55,11 +54,34 @@ def _plain(v: Any) -> Any:
     return v
 
 
+def builtin_datasets() -> List[str]:
+    """The dataset modules of this package (every module but the helpers; ``simulated`` is the
+    embedded simulator): a new loader dropped in here is found without editing anything."""
+    import pkgutil
+
+    found = [i.name for i in pkgutil.iter_modules(__path__) if not i.name.startswith("_") and i.name != "simulate"]
+    return sorted(found) + ["simulated"]
+
+
 def loader(name: str):
-    """The module loading dataset ``name`` (imported lazily)."""
-    if name not in REAL_DATASETS:
-        raise DataError("data config", "name", f"unknown dataset {name!r}; expected one of {list(DATASETS)}")
-    return importlib.import_module(f"{__name__}.{name}")
+    """The module loading dataset ``name``: ``tcn_ahrs.datasets.<name>``, or any importable
+    module of that dotted name (a dataset of one's own: ``data.name=my_pkg.my_dataset``) with
+    ``list_recordings(root)`` and ``load_recording(root, name)``."""
+    candidates = [f"{__name__}.{name}", name] if "." not in name else [name]
+    for mod_name in candidates:
+        try:
+            mod = importlib.import_module(mod_name)
+        except ModuleNotFoundError as e:
+            if e.name is not None and not mod_name.startswith(e.name):
+                raise  # the module exists but one of its own imports is missing
+            continue
+        missing = [f for f in ("list_recordings", "load_recording") if not callable(getattr(mod, f, None))]
+        if missing:
+            raise DataError("data config", "name", f"module {mod_name!r} is not a dataset loader: it lacks "
+                                                   f"{' and '.join(missing)} (see tcn_ahrs/datasets/__init__.py)")
+        return mod
+    raise DataError("data config", "name", f"unknown dataset {name!r}; expected one of {builtin_datasets()} "
+                                           "or an importable module with list_recordings and load_recording")
 
 
 def resolve_root(data_cfg: Mapping) -> Path:

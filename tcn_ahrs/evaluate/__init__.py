@@ -38,10 +38,10 @@ Output layout under ``out_dir``::
     trajectories/groundtruth/<recording>.txt    (valid ground-truth samples only)
 """
 from .files import plot_recording, safe_name, write_tum
-from .reports import (LABELS, METRIC_KEYS, average_rows, averages_markdown, compare_markdown, group_table,
+from .reports import (label, average_rows, averages_markdown, compare_markdown, group_table,
                       markdown_table, print_table, results_markdown)
 from .runner import evaluate, load_results
 
 __all__ = ["evaluate", "load_results", "markdown_table", "group_table", "results_markdown", "print_table",
            "compare_markdown", "averages_markdown", "average_rows", "write_tum", "plot_recording", "safe_name",
-           "LABELS", "METRIC_KEYS"]
+           "label"]

@@ -5,19 +5,27 @@ from __future__ import annotations
 import sys
 from typing import Iterable, List, Optional, Sequence
 
+from .. import metrics
+from ..metrics import extra_metrics
+
+_SHORT = {"aae_deg": "AAE", "aye_deg": "AYE", "ahe_deg": "AHE", "total_deg": "total", "heading_deg": "heading",
+          "inclination_deg": "incl."}
+_LONG = {"total_deg": "BROAD total", "heading_deg": "BROAD heading", "inclination_deg": "inclination"}
 
 
-METRIC_KEYS = ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
-"""Numeric per-recording metrics that are averaged (means, groups)."""
+def label(key: str, long: bool = False) -> str:
+    """Table heading of a metric key: the built-ins' names, a registered metric's own label."""
+    if long and key in _LONG:
+        return _LONG[key]
+    if key in _SHORT:
+        return _SHORT[key]
+    return next((m.label for m in extra_metrics() if m.key == key), key)
 
-LABELS = {
-    "aae_deg": "AAE",
-    "aye_deg": "AYE",
-    "ahe_deg": "AHE",
-    "total_deg": "total",
-    "heading_deg": "heading",
-    "inclination_deg": "incl.",
-}
+
+def _extra_keys(results: dict) -> List[str]:
+    """Registered extra metrics present in these results."""
+    return [m.key for m in extra_metrics() if _has(results, m.key)]
+
 
 MAX_PLOT_POINTS = 5000
 
@@ -37,7 +45,7 @@ def _metric_rows(results: dict, key: str, columns: List[str], values, bold_best:
     table = {m: [values(m, c) for c in columns] for m in methods}
     best = [min((table[m][j] for m in methods if table[m][j] is not None), default=None)
             for j in range(len(columns))]
-    lines = [f"| {LABELS.get(key, key)} (deg) | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    lines = [f"| {label(key)} (deg) | " + " | ".join(columns) + " |", "|---" * (len(columns) + 1) + "|"]
     for m in methods:
         cells = []
         for j, v in enumerate(table[m]):
@@ -97,6 +105,9 @@ def results_markdown(results: dict) -> str:
                   "Total / heading / inclination RMSE in degrees, earth-frame error, no alignment "
                   "(6-axis estimates: constant heading offset removed).\n",
                   markdown_table(results, broad_keys)]
+    extra = _extra_keys(results)
+    if extra:
+        parts += ["\n## Further metrics\n", markdown_table(results, extra)]
     if any(m.get("groups") for m in results["methods"].values()):
         keys = broad_keys if _has(results, "total_deg") else ("aae_deg", "aye_deg")
         parts += ["\n## Group averages\n", group_table(results, ("aae_deg", "aye_deg") + tuple(
@@ -109,19 +120,18 @@ def print_table(results: dict, metric_keys: Optional[Iterable[str]] = None, file
     (+ Average), columns the metrics, all in degrees."""
     file = file or sys.stdout
     if metric_keys is None:
-        metric_keys = ["aae_deg", "aye_deg", "ahe_deg"] + [k for k in ("total_deg", "heading_deg", "inclination_deg")
-                                                if _has(results, k)]
+        metric_keys = ["aae_deg", "aye_deg", "ahe_deg"] + [k for k in metrics.metric_keys()[3:] if _has(results, k)]
     metric_keys = list(metric_keys)
     names = [r if len(r) <= 40 else r[:19] + "~" + r[-20:] for r in results["recordings"]]
     w0 = max([len("recording"), len("Average")] + [len(r) for r in names])
-    widths = [max(7, len(LABELS.get(k, k))) for k in metric_keys]
+    widths = [max(7, len(label(k))) for k in metric_keys]
     for method, mres in results["methods"].items():
         print(f"\n{method} — attitude errors in degrees", file=file)
-        print(f"{'recording':<{w0}}  " + "  ".join(f"{LABELS.get(k, k):>{w}}" for k, w in zip(metric_keys, widths)),
+        print(f"{'recording':<{w0}}  " + "  ".join(f"{label(k):>{w}}" for k, w in zip(metric_keys, widths)),
               file=file)
         rows = list(zip(names, mres["recordings"])) + [("Average", mres["mean"])]
-        for label, vals in rows:
-            print(f"{label:<{w0}}  " + "  ".join(f"{_fmt(vals.get(k)):>{w}}" for k, w in zip(metric_keys, widths)),
+        for row_name, vals in rows:
+            print(f"{row_name:<{w0}}  " + "  ".join(f"{_fmt(vals.get(k)):>{w}}" for k, w in zip(metric_keys, widths)),
                   file=file)
 
 
@@ -158,10 +168,13 @@ def compare_markdown(results: dict) -> str:
     elif _has(results, "inclination_deg"):
         parts += ["\n## Inclination error (deg, BROAD definition, no alignment; needs no heading)\n",
                   markdown_table(results, ("inclination_deg",))]
+    extra = _extra_keys(results)
+    if extra:
+        parts += ["\n## Further metrics (registered; deg)\n", markdown_table(results, extra)]
     if any(m.get("groups") for m in results["methods"].values()):
         keys = ("total_deg", "heading_deg", "inclination_deg") if broad else ("aae_deg", "aye_deg", "inclination_deg")
         key = "total_deg" if broad else "aae_deg"
-        parts += [f"\n## Group averages: {LABELS.get(key, key)} (rows methods, columns groups)\n",
+        parts += [f"\n## Group averages: {label(key)} (rows methods, columns groups)\n",
                   group_table(results, (key,)),
                   "\n## Group averages: all metrics\n", group_table(results, keys)]
     abl = results.get("ablation") or []
@@ -187,19 +200,18 @@ def compare_markdown(results: dict) -> str:
 def averages_markdown(results: dict) -> str:
     """Markdown: one row per method (column of the big tables) with its mean over recordings of
     every metric present — the compact summary a README quotes."""
-    keys = [k for k in ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg", "inclination_deg")
-            if any((m.get("mean") or {}).get(k) is not None for m in results["methods"].values())]
-    names = {"aae_deg": "AAE", "aye_deg": "AYE", "ahe_deg": "AHE", "total_deg": "BROAD total", "heading_deg": "BROAD heading",
-             "inclination_deg": "inclination"}
-    lines = ["| method | " + " | ".join(names[k] for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
+    keys = [k for k in metrics.metric_keys() if any((m.get("mean") or {}).get(k) is not None for m in results["methods"].values())]
+    lines = ["| method | " + " | ".join(label(k, long=True) for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
     for name, m in results["methods"].items():
         mean = m.get("mean") or {}
         lines.append(f"| {name} | " + " | ".join("—" if mean.get(k) is None else f"{mean[k]:.2f}" for k in keys) + " |")
     return "\n".join(lines)
 
 
-def average_rows(results: dict, keys: Sequence[str] = ("aae_deg", "aye_deg", "inclination_deg")) -> str:
-    """Compact text: one line per column with its averages (for logs and reports)."""
+def average_rows(results: dict, keys: Optional[Sequence[str]] = None) -> str:
+    """Compact text: one line per column with its averages (for logs and reports); ``keys``
+    default: every metric of :func:`tcn_ahrs.metrics.metric_keys`."""
+    keys = metrics.metric_keys() if keys is None else keys
     lines = [f"{'column':<28s} " + " ".join(f"{k:>16s}" for k in keys)]
     for name, m in results["methods"].items():
         mean = m.get("mean", {})

@@ -12,10 +12,10 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..estimators.base import initial_state
-from ..metrics import broad_errors, sequence_metrics
+from ..metrics import HEADING_KEYS, broad_errors, extra_metrics, metric_keys, sequence_metrics
 from ..sequence import ImuSequence
 from .files import plot_recording, safe_name, write_tum
-from .reports import METRIC_KEYS, results_markdown
+from .reports import results_markdown
 
 
 def jsonable(v):
@@ -42,7 +42,7 @@ def _mean_metrics(rows: List[dict]) -> Dict[str, Optional[float]]:
     diverged estimator must not vanish from the average)."""
     rows = [r for r in rows if r.get("n_scored", 0) > 0]
     out: Dict[str, Optional[float]] = {"n_recordings": len(rows)}
-    for k in METRIC_KEYS:
+    for k in metric_keys():
         vals = [r.get(k, "absent") for r in rows]
         vals = [v for v in vals if v != "absent"]
         if not vals:
@@ -151,7 +151,7 @@ def evaluate(
                 m["inclination_deg"] = broad_errors(seq.quat, quat, seq.scored(), "6d")["inclination_deg"]
             if heading_free:
                 # no heading reference (RIANN): only the inclination is meaningful
-                for k in ("aae_deg", "aye_deg", "ahe_deg", "total_deg", "heading_deg"):
+                for k in HEADING_KEYS + tuple(x.key for x in extra_metrics() if x.needs_heading):
                     m[k] = float("nan")
             row = {"name": seq.name, "n_samples": len(seq), "duration_s": seq.duration,
                    "axes": seq_in.num_axes, **m, "run_time_s": run_time}

@@ -46,7 +46,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .. import so3
 from ..conventions import GRAVITY
 from ..filters.common import field_gates
 from .ecf import _unit
