@@ -68,3 +68,11 @@ def test_script_key_checks_accept_their_own_yaml():
     spec.loader.exec_module(mod)
     assert top(_compose("export")) <= mod.KEYS
     assert _compose("inspect_data").data.name
+
+
+@pytest.mark.parametrize("paper", _options("paper"))
+def test_every_paper_config_composes_and_has_its_experiment(paper):
+    from tcn_ahrs.reproduce import papers
+
+    cfg = _compose("reproduce", [f"paper={paper}"])
+    assert cfg.paper.name == paper and paper in papers()

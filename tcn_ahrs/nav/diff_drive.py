@@ -91,7 +91,8 @@ def simulate_drive(seed: int, rate: float = 50.0, length: float = 300.0, robot: 
                    sensors: Sensors = Sensors(), cruise: float = 0.5) -> Dict[str, np.ndarray]:
     """One run. Returns float64 arrays: ``time`` (N,), ``pos``, ``vel`` (N, 3) m, m/s ENU,
     ``quat`` (N, 4) nav_from_body, ``acc``, ``gyro``, ``mag`` (N, 3) body, ``v_left``,
-    ``v_right`` (N,) m/s, ``mag_quat`` (N, 4) (TRIAD of acc and mag), ``slipping`` (N,) bool."""
+    ``v_right`` (N,) m/s, ``mag_quat`` (N, 4) (TRIAD of acc and mag), ``slipping`` (N,) bool,
+    ``accel_bias``, ``gyro_bias`` (3,) the run's constant IMU biases (m/s^2, rad/s)."""
     if cruise > robot.v_max:
         raise ValueError(f"cruise {cruise} m/s exceeds the robot's speed limit {robot.v_max} m/s")
     rng = np.random.default_rng(seed)
@@ -112,8 +113,10 @@ def simulate_drive(seed: int, rate: float = 50.0, length: float = 300.0, robot: 
     acc_true = np.zeros((n, 3))
     acc_true[1:] = np.einsum("nji,nj->ni", rot[:-1], f_nav[1:])  # R_{k-1}^T f_k (the filter's Eq. 6)
     acc_true[0] = rot[0].T @ f_nav[0]
-    acc = acc_true + sensors.accel_bias * rng.standard_normal(3) + sensors.accel_noise * rng.standard_normal((n, 3))
-    gyro = gyro_true + sensors.gyro_bias * rng.standard_normal(3) + sensors.gyro_noise * rng.standard_normal((n, 3))
+    accel_bias = sensors.accel_bias * rng.standard_normal(3)
+    acc = acc_true + accel_bias + sensors.accel_noise * rng.standard_normal((n, 3))
+    gyro_bias = sensors.gyro_bias * rng.standard_normal(3)
+    gyro = gyro_true + gyro_bias + sensors.gyro_noise * rng.standard_normal((n, 3))
     m_nav = FIELD_UT * np.array([0.0, math.cos(DIP), -math.sin(DIP)])
     anomaly = np.zeros((n, 3))
     dist = np.concatenate([[0.0], np.cumsum(speed[1:] * dt)])
@@ -137,4 +140,5 @@ def simulate_drive(seed: int, rate: float = 50.0, length: float = 300.0, robot: 
     mag_quat = triad_quat(torch.as_tensor(acc), torch.as_tensor(mag)).numpy()
     quat = so3.quat_positive(so3.matrix_to_quat(torch.as_tensor(rot))).numpy()
     return {"time": np.arange(n) * dt, "pos": pos, "vel": vel, "quat": quat, "acc": acc, "gyro": gyro,
-            "mag": mag, "v_left": v_l, "v_right": v_r, "mag_quat": mag_quat, "slipping": slipping}
+            "mag": mag, "v_left": v_l, "v_right": v_r, "mag_quat": mag_quat, "slipping": slipping,
+            "accel_bias": accel_bias, "gyro_bias": gyro_bias}
