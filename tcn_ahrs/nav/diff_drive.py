@@ -87,6 +87,28 @@ def _profile(segs, rate: float, cruise: float, turn_speed: float, turn_rate: flo
     return v, np.asarray(w_cmd)
 
 
+def planar_motion(speed: np.ndarray, yaw_rate: np.ndarray, yaw0: float, rate: float, x0=(0.0, 0.0, 0.0)) -> Dict:
+    """A body moving on a flat floor with forward speed ``speed`` (N,) m/s and yaw rate (N,)
+    rad/s, integrated in the discretisation of the filters' prediction (Eq. 6 of the odometry
+    paper; see the module docstring). Returns ``n``, ``dt``, ``time`` (N,), ``pos``, ``vel`` (N, 3)
+    ENU, ``rot`` (N, 3, 3) nav_from_body, ``acc`` (N, 3) true specific force, ``gyro`` (N, 3)."""
+    n, dt = len(speed), 1.0 / rate
+    yaw = yaw0 + np.concatenate([[0.0], np.cumsum(yaw_rate[1:] * dt)])
+    vel = np.stack([speed * np.cos(yaw), speed * np.sin(yaw), np.zeros(n)], -1)
+    pos = np.zeros((n, 3)) + np.asarray(x0, dtype=np.float64)
+    pos[1:] += np.cumsum(0.5 * (vel[1:] + vel[:-1]) * dt, 0)
+    gyro = np.stack([np.zeros(n), np.zeros(n), yaw_rate], -1)
+    r0 = so3.exp(torch.tensor([0.0, 0.0, yaw0], dtype=torch.float64))
+    rot = so3.integrate(r0, torch.as_tensor(gyro), torch.full((n,), dt, dtype=torch.float64)).numpy()
+    a_nav = np.zeros((n, 3))
+    a_nav[1:] = (vel[1:] - vel[:-1]) / dt
+    f_nav = a_nav + np.array([0.0, 0.0, GRAVITY])
+    acc = np.zeros((n, 3))
+    acc[1:] = np.einsum("nji,nj->ni", rot[:-1], f_nav[1:])  # R_{k-1}^T f_k (the filter's Eq. 6)
+    acc[0] = rot[0].T @ f_nav[0]
+    return {"n": n, "dt": dt, "time": np.arange(n) * dt, "pos": pos, "vel": vel, "rot": rot, "acc": acc, "gyro": gyro}
+
+
 def simulate_drive(seed: int, rate: float = 50.0, length: float = 300.0, robot: Robot = Robot(),
                    sensors: Sensors = Sensors(), cruise: float = 0.5) -> Dict[str, np.ndarray]:
     """One run. Returns float64 arrays: ``time`` (N,), ``pos``, ``vel`` (N, 3) m, m/s ENU,
@@ -98,21 +120,9 @@ def simulate_drive(seed: int, rate: float = 50.0, length: float = 300.0, robot: 
     rng = np.random.default_rng(seed)
     segs = mine_route(rng, length)
     speed, yaw_rate = _profile(segs, rate, cruise, 0.5 * cruise, 0.5, 0.5)
-    n, dt = len(speed), 1.0 / rate
     yaw0 = rng.uniform(-math.pi, math.pi)
-    yaw = yaw0 + np.concatenate([[0.0], np.cumsum(yaw_rate[1:] * dt)])
-    vel = np.stack([speed * np.cos(yaw), speed * np.sin(yaw), np.zeros(n)], -1)
-    pos = np.zeros((n, 3))
-    pos[1:] = np.cumsum(0.5 * (vel[1:] + vel[:-1]) * dt, 0)
-    gyro_true = np.stack([np.zeros(n), np.zeros(n), yaw_rate], -1)
-    r0 = so3.exp(torch.tensor([0.0, 0.0, yaw0], dtype=torch.float64))
-    rot = so3.integrate(r0, torch.as_tensor(gyro_true), torch.full((n,), dt, dtype=torch.float64)).numpy()
-    a_nav = np.zeros((n, 3))
-    a_nav[1:] = (vel[1:] - vel[:-1]) / dt
-    f_nav = a_nav + np.array([0.0, 0.0, GRAVITY])
-    acc_true = np.zeros((n, 3))
-    acc_true[1:] = np.einsum("nji,nj->ni", rot[:-1], f_nav[1:])  # R_{k-1}^T f_k (the filter's Eq. 6)
-    acc_true[0] = rot[0].T @ f_nav[0]
+    m = planar_motion(speed, yaw_rate, yaw0, rate)
+    n, dt, pos, vel, rot, acc_true, gyro_true = (m[k] for k in ("n", "dt", "pos", "vel", "rot", "acc", "gyro"))
     accel_bias = sensors.accel_bias * rng.standard_normal(3)
     acc = acc_true + accel_bias + sensors.accel_noise * rng.standard_normal((n, 3))
     gyro_bias = sensors.gyro_bias * rng.standard_normal(3)
