@@ -26,6 +26,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from .diff_drive import planar_motion
+from .odometry_baselines import euler_matrix
 
 G0 = 9.80665
 
@@ -154,11 +155,7 @@ def static_init(sim: Dict[str, np.ndarray], rest_s: float = 2.0, heading_error: 
     a = sim["acc"][:k].mean(0)
     roll, pitch = math.atan2(a[1], a[2]), math.atan2(-a[0], math.hypot(a[1], a[2]))
     yaw = math.atan2(sim["rot"][0, 1, 0], sim["rot"][0, 0, 0]) + heading_error
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    return {"p0": sim["pos"][0].copy(), "v0": np.zeros(3), "rot0": rz @ ry @ rx,
+    return {"p0": sim["pos"][0].copy(), "v0": np.zeros(3), "rot0": euler_matrix(np.array([roll, pitch, yaw]))[0],
             "bias0": np.concatenate([np.zeros(3), sim["gyro"][:k].mean(0)])}
 
 
