@@ -94,11 +94,11 @@ def route_motion(route: str, setup: UwbSetup = UwbSetup(), laps: int = 2, rest_s
 
 
 def simulate_uwb(route: str, seed: int, setup: UwbSetup = UwbSetup(), accel_outliers: int = 0,
-                 contaminated: float = 0.0, contaminated_beacons: Sequence[int] = (1, 3),
+                 accel_outlier_len: int = 1, contaminated: float = 0.0, contaminated_beacons: Sequence[int] = (1, 3),
                  nlos_bias: Optional[Tuple[float, float]] = None, laps: int = 2,
                  dropouts: Optional[Sequence[Tuple[int, float, float]]] = None) -> Dict[str, np.ndarray]:
-    """One seeded run. ``accel_outliers``: that many single-sample 50 dBW accelerometer outliers
-    spread over the route; ``contaminated``: fraction of the ranges of ``contaminated_beacons``
+    """One seeded run. ``accel_outliers``: that many 50 dBW accelerometer outliers spread over
+    the route, each ``accel_outlier_len`` consecutive samples (1: the paper's; more: a burst); ``contaminated``: fraction of the ranges of ``contaminated_beacons``
     (0-based: the paper's beacons 2 and 4) with 20 dBW white noise, or with a positive bias drawn
     uniformly in ``nlos_bias`` (m) when given; ``dropouts``: (beacon, start s, duration s) with no
     range. Returns ``time``, ``pos``, ``vel`` (N, 3), ``rot`` (N, 3, 3), ``acc``, ``gyro`` (N, 3)
@@ -117,6 +117,7 @@ def simulate_uwb(route: str, seed: int, setup: UwbSetup = UwbSetup(), accel_outl
     if accel_outliers > 0:
         moving = np.flatnonzero(m["speed"] > 0.9 * setup.speed)
         at = moving[np.linspace(0, len(moving) - 1, accel_outliers + 2).astype(int)[1:-1]]
+        at = np.unique(np.minimum((at[:, None] + np.arange(accel_outlier_len)[None]).ravel(), n - 1))
         acc[at] += math.sqrt(10 ** (50 / 10)) * rng.standard_normal((len(at), 3))
         accel_outlier[at] = True
     step = int(round(setup.imu_rate / setup.uwb_rate))
