@@ -29,9 +29,17 @@ Complementary (error-state) filter, 15 states ``[dp, dv, dtheta, db_a, db_g]``:
   alpha = 0.001 is 10.83 (6.2 is alpha = 0.0128). ``gate_alpha`` takes the quantile from
   scipy, ``gate_threshold`` a number; the experiment reports both.
 
+Changes to Algorithm 1, each a :class:`UwbParams` field, each measured (``python
+scripts/reproduce.py paper=uwb_arckf`` runs the printed version beside ours): the fading factor
+on position and velocity only (``fading_states``; on all of P the biases and the attitude are
+kicked through the inflated cross-covariances and runs diverge), an iterated range update
+(``n_relinearise``), a floor constraint (``height_std``: four coplanar beacons leave the height
+ambiguous) and trust only where the epoch had >= 4 ranges to accuse a bad one.
+
 Beyond the paper: ``huber`` (a Huber M-estimator update, the second robust baseline: each
-beacon's R divided by its Huber weight of the normalised innovation), and missing ranges
-(beacon dropouts: NaN ranges are left out of that epoch).
+beacon's R divided by its Huber weight of the normalised innovation), ``imu_gate`` (the same
+chi-square test on the accelerometer samples), missing ranges (beacon dropouts: NaN ranges are
+left out of that epoch) and 3-D beacons (no floor constraint: ``tag_height=None``).
 """
 from __future__ import annotations
 
