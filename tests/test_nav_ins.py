@@ -9,7 +9,7 @@ pytest.importorskip("pymap3d")
 from tcn_ahrs.nav import earth  # noqa: E402
 from tcn_ahrs.nav.ins import (InsNoise, InsState, attitude_error_enu, initial_cov, mechanise, navigate,  # noqa: E402
                               switch_frame, transform_matrix)
-from tcn_ahrs.nav.polar_sim import DEG_PER_H, UG, Flight, ImuGrade, simulate_flight  # noqa: E402
+from tcn_ahrs.nav.polar_sim import Flight, ImuGrade, simulate_flight  # noqa: E402
 
 PERFECT = ImuGrade(gyro_bias=0.0, accel_bias=0.0, gyro_arw=0.0, accel_vrw=0.0)
 
