@@ -34,7 +34,7 @@ DEFAULTS: Dict[str, Any] = {
     "streaming": {"axes": [9, 6], "samples": 3000, "warmup": 300, "rate": 100.0, "threads": 1,
                   "run_samples": 3000, "riann": True, "goal_samples_per_s": 25_000.0},
     "filters": {"samples": 6000, "rate": 100.0, "batches": [1, 64], "repeats": 1, "threads": 1,
-                "filters": ["ecf", "mahony", "eskf"], "peers": ["vqf", "imufusion"]},
+                "filters": ["ecf", "mahony", "madgwick", "eskf"], "peers": ["vqf", "imufusion"]},
 }
 
 QUICK: Dict[str, Any] = {

@@ -5,13 +5,19 @@ from typing import Any, Dict, List
 
 import torch
 
+from ..filters import compiled
 from .common import Threads, summary, time_calls
+
+COMPILED = ("ecf", "mahony", "madgwick")  # registry names whose loop has a numba kernel
 
 
 def bench_filters(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, Any]:
     """Samples/s of registered classical filters (``p["filters"]``, registry names) on one
     recording: batch b = b parameter sets of the first ``default_grid`` parameter, spread over
-    its grid range, in one ``quat_batch`` call (the path of evaluation and tuning)."""
+    its grid range, in one ``quat_batch`` call (the path of evaluation and tuning; on the CPU in
+    float64 the compiled loops of :mod:`tcn_ahrs.filters.compiled` when numba is installed, their
+    parameter sets in numba's threads). Each row also gives the torch loop's speed (``torch_*``)
+    measured in the same run, so the ratio is on one machine and load."""
     from ..datasets.simulate import simulate
     from ..estimators import registry
 
@@ -34,11 +40,18 @@ def bench_filters(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, An
                     val = (torch.linspace(lo, hi, b, dtype=torch.float64, device=dev)[:, None] if b > 1
                            else (lo + hi) / 2)
                     call = lambda: est.quat_batch([seq], [None], {key: val})  # noqa: E731
-                    ts = time_calls(call, 0, int(p["repeats"]), dev)
+                    ts = time_calls(call, 1, int(p["repeats"]), dev)  # warm-up: numba's JIT / cache load
                     s = summary(ts)
-                    rows.append({"name": f"tcn_ahrs.filters.{name}", "device": dev, "batch": b, "threads": th,
-                                 "seconds": s["median_s"], "samples_per_s": b * n / s["median_s"],
-                                 "per_recording_samples_per_s": n / s["median_s"]})
+                    row = {"name": f"tcn_ahrs.filters.{name}", "device": dev, "batch": b, "threads": th,
+                           "seconds": s["median_s"], "samples_per_s": b * n / s["median_s"],
+                           "per_recording_samples_per_s": n / s["median_s"],
+                           "loop": "numba" if (dev == "cpu" and compiled.available() and name in COMPILED) else "torch"}
+                    if row["loop"] == "numba":
+                        with compiled.torch_loops():
+                            t_torch = summary(time_calls(call, 0, int(p["repeats"]), dev))["median_s"]
+                        row["torch_samples_per_s"] = b * n / t_torch
+                        row["vs_torch_loop"] = t_torch / s["median_s"]
+                    rows.append(row)
         rows.extend(_peer_filter_rows(p, seq))
     vqf = next((r for r in rows if r["name"].startswith("vqf") and "samples_per_s" in r), None)
     for r in rows:

@@ -73,7 +73,8 @@ def to_markdown(res: Dict[str, Any]) -> str:
                 f"Recording {fi['recording']} ({fi['samples']} samples at {fi['rate_hz']:.0f} Hz, 9-axis); "
                 f"batch = number of parameter sets run in one call (samples/s is the aggregate). "
                 f"Goal (batched aggregate >= VQF single): {fi['goal_met']}.", ""]
-        rows = [[r["name"], r.get("device"), r.get("batch"), r.get("seconds"), r.get("samples_per_s"),
-                 f"{r['vs_vqf']:.2f}x" if "vs_vqf" in r else r.get("skipped", "-")] for r in fi["rows"]]
-        out += [_table(["filter", "device", "batch", "s per call", "samples/s", "/ VQF"], rows), ""]
+        rows = [[r["name"], r.get("device"), r.get("loop", "-"), r.get("batch"), r.get("seconds"), r.get("samples_per_s"),
+                 f"{r['vs_vqf']:.2f}x" if "vs_vqf" in r else r.get("skipped", "-"),
+                 f"{r['vs_torch_loop']:.0f}x" if "vs_torch_loop" in r else "-"] for r in fi["rows"]]
+        out += [_table(["filter", "device", "loop", "batch", "s per call", "samples/s", "/ VQF", "/ torch loop"], rows), ""]
     return "\n".join(out)

@@ -29,6 +29,7 @@ from torch import Tensor
 
 from .. import so3
 from ..conventions import GRAVITY
+from .compiled import ecf_loop, use_compiled
 from .common import converter_like, elapsed, field_gates, flatten_batch, gain_schedule, normalize, unflatten
 
 
@@ -45,6 +46,7 @@ def ecf(
     m_min=20.0,
     m_max=70.0,
     gravity: float = GRAVITY,
+    backend: str = "auto",
 ) -> Dict[str, Tensor]:
     """Run the closed-loop ECF.
 
@@ -60,6 +62,8 @@ def ecf(
         a_min:   accelerometer rejection threshold on ``| |a| - g |``, m/s^2 (Eq. 7); default 1.0.
         m_min, m_max: accepted magnetic field norm range, uT (Eq. 7); default 20..70.
         gravity: ``|g|`` in m/s^2.
+        backend: ``"auto"`` runs the loop compiled (:mod:`tcn_ahrs.filters.compiled`, numba) when
+            nothing needs a gradient and all is float64 on the CPU; ``"torch"`` / ``"numba"`` force one.
         Parameters broadcast as batch tensors (scalars, (P,), ...).
     Returns:
         ``quat`` (..., N, 4); ``acc_used``, ``mag_used`` (..., N) bool (Eq. 7 decisions);
@@ -84,6 +88,14 @@ def ecf(
         w_mag = gain * mag_ok
 
     r = so3.quat_to_matrix(q0)
+    if use_compiled(backend, gyro, accel, dt, q0, mag, w_acc, *params):
+        z = torch.zeros_like(gyro)
+        npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+        quat = torch.from_numpy(ecf_loop(npy(a_hat), npy(east_b if mag is not None else z), npy(w_acc.to(gyro.dtype)),
+                                         npy(w_mag.to(gyro.dtype) if mag is not None else z[..., 0]), npy(gyro),
+                                         npy(dt), npy(r), mag is not None))
+        res = {"quat": quat, "acc_used": acc_ok, "mag_used": mag_ok, "gain": gain}
+        return {k: unflatten(v, batch) for k, v in res.items()}
     out = [r]
     for k in range(1, n):
         # C^T up is the third row of C, C^T east the first row.

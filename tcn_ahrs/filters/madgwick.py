@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
+from .compiled import madgwick_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, nwu_from_enu_quat, unflatten
 
 BETA_IMU = 0.033
@@ -79,6 +80,7 @@ def madgwick(
     q0: Tensor,
     mag: Optional[Tensor] = None,
     beta=None,
+    backend: str = "auto",
 ) -> Dict[str, Tensor]:
     """Run the Madgwick filter.
 
@@ -87,6 +89,8 @@ def madgwick(
         dt:  (..., N) s, time step before each sample (``dt[..., 0]`` unused).
         q0:  (..., 4) initial nav_from_body in ENU (magnetic ENU when mag is used).
         beta: gradient-descent gain, rad/s; default 0.033 (6-axis) / 0.041 (9-axis) as ahrs.
+        backend: ``"auto"``: the compiled loop (:mod:`tcn_ahrs.filters.compiled`) when nothing needs a
+            gradient and all is float64 on the CPU; ``"torch"`` / ``"numba"`` force one.
     Returns:
         ``quat`` (..., N, 4) nav_from_body, ENU.
     """
@@ -104,6 +108,13 @@ def madgwick(
 
     c = nwu_from_enu_quat(dtype, gyro.device)  # NWU_from_ENU
     q = so3.quat_normalize(so3.quat_mul(c, q0))
+    if use_compiled(backend, gyro, accel, dt, q0, mag, beta):
+        npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+        B = gyro.shape[0]
+        qs = madgwick_loop(npy(a_hat), npy(m_hat if m_hat is not None else torch.zeros_like(gyro)), npy(gyro), npy(dt),
+                           npy(q), npy(beta[:, 0].expand(B)), m_hat is not None)
+        quat = so3.quat_mul(so3.quat_conj(c), torch.from_numpy(qs))
+        return {"quat": unflatten(quat, batch)}
     qs = [q]
     zero = torch.zeros_like(q[:, :1])
     for k in range(1, n):

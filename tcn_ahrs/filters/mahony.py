@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
+from .compiled import mahony_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, unflatten
 
 
@@ -39,6 +40,7 @@ def mahony(
     k_i=0.3,
     bias0: Optional[Tensor] = None,
     compat: bool = False,
+    backend: str = "auto",
 ) -> Dict[str, Tensor]:
     """Run the Mahony filter.
 
@@ -50,6 +52,8 @@ def mahony(
         k_i:  integral gain, 1/s^2 (default 0.3, as ahrs); 0 disables bias estimation.
         bias0: (..., 3) initial gyro bias, rad/s (default 0).
         compat: integrate like ahrs (first-order + normalisation) instead of the exponential map.
+        backend: ``"auto"``: the compiled loop (:mod:`tcn_ahrs.filters.compiled`) when nothing needs a
+            gradient and all is float64 on the CPU; ``"torch"`` / ``"numba"`` force one.
     Returns:
         ``quat`` (..., N, 4); ``gyro_bias`` (..., N, 3) rad/s (the bias estimate after sample k).
     """
@@ -65,6 +69,14 @@ def mahony(
     m_hat = None if mag is None else normalize(mag)
     k_p, k_i = k_p[:, None], k_i[:, None]
 
+    if use_compiled(backend, gyro, accel, dt, q0, mag, b, k_p, k_i):
+        npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+        B = gyro.shape[0]
+        qs, bs = mahony_loop(npy(a_hat), npy(m_hat if m_hat is not None else torch.zeros_like(gyro)), npy(gyro), npy(dt),
+                             npy(q0), npy(k_p[:, 0].expand(B)), npy(k_i[:, 0].expand(B)), npy(b), m_hat is not None,
+                             bool(compat))
+        res = {"quat": torch.from_numpy(qs), "gyro_bias": torch.from_numpy(bs)}
+        return {k: unflatten(v, batch) for k, v in res.items()}
     q = so3.quat_normalize(q0)
     b = b.clone()
     qs, bs = [q], [b]
