@@ -8,7 +8,7 @@ import torch
 from ..filters import compiled
 from .common import Threads, summary, time_calls
 
-COMPILED = ("ecf", "mahony", "madgwick")  # registry names whose loop has a numba kernel
+COMPILED = ("ecf", "mahony", "madgwick", "eskf", "robust_eskf")  # registry names with a numba loop
 
 
 def bench_filters(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, Any]:

@@ -1,6 +1,6 @@
 """Compiled (numba) per-sample loops of the classical filters, for inference and grid tuning.
 
-The torch filters (:mod:`tcn_ahrs.filters.ecf`, ``mahony``, ``madgwick``) stay the reference
+The torch filters (:mod:`tcn_ahrs.filters.ecf`, ``mahony``, ``madgwick``, ``eskf``) stay the reference
 and the differentiable path; their sequential loop is what costs (one Python iteration and ~40
 tensor ops per sample). These kernels run the same recursion, written out on scalars, over
 float64 numpy arrays (B runs x N samples, runs in parallel threads), and the torch functions
@@ -239,6 +239,164 @@ def madgwick_loop(a_hat, m_hat, gyro, dt, q0, beta, use_mag):
     return qs
 
 
+# ---------------------------------------------------------------------------- ES-EKF
+# Small dense helpers (loops, no BLAS call per 6x6 product).
+
+@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
+def _mm(A, B):
+    n, m, p = A.shape[0], A.shape[1], B.shape[1]
+    C = np.zeros((n, p))
+    for i in range(n):
+        for k in range(m):
+            a = A[i, k]
+            for j in range(p):
+                C[i, j] += a * B[k, j]
+    return C
+
+
+@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
+def _rodrigues(px, py, pz):
+    """so3.exp of (px, py, pz) as a (3, 3) array."""
+    t2 = px * px + py * py + pz * pz
+    if t2 < 1e-6:
+        A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+        C = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+    else:
+        t = math.sqrt(t2)
+        A = math.sin(t) / t
+        C = (1.0 - math.cos(t)) / t2
+    E = np.empty((3, 3))
+    E[0, 0] = 1.0 + C * (-pz * pz - py * py)
+    E[0, 1] = A * -pz + C * (py * px)
+    E[0, 2] = A * py + C * (pz * px)
+    E[1, 0] = A * pz + C * (px * py)
+    E[1, 1] = 1.0 + C * (-pz * pz - px * px)
+    E[1, 2] = A * -px + C * (pz * py)
+    E[2, 0] = A * -py + C * (px * pz)
+    E[2, 1] = A * px + C * (py * pz)
+    E[2, 2] = 1.0 + C * (-py * py - px * px)
+    return E
+
+
+@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
+def _gamma(r, S):
+    """r^T S^-1 r (filters.kalman.mahalanobis)."""
+    return float(r @ np.linalg.solve(S, r))
+
+
+@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
+def _observe(rot, bias, P, r, H, R, plausible, thr, robust, n_iter, max_fading):
+    """eskf._observe: (robust inflation, Eqs. 39-42), Kalman update with the Joseph form, injection
+    and reset. Returns (rot, bias, P, gamma, lam_p, lam_r)."""
+    m = r.shape[0]
+    HP = _mm(H, P)
+    hph = _mm(HP, H.T.copy())
+    gamma0, lam_p, lam_r = 0.0, 1.0, 1.0
+    if robust:
+        for it in range(n_iter + 1):
+            g = _gamma(r, lam_p * hph + lam_r * R)
+            if it == 0:
+                gamma0 = g
+            if it == n_iter:
+                break
+            f = g / thr if g >= thr else 1.0
+            if plausible:
+                lam_p = min(lam_p * f, max_fading)
+            else:
+                lam_r = lam_r * f
+        P = lam_p * P
+        R = lam_r * R
+        hph = lam_p * hph
+        HP = lam_p * HP
+    S = hph + R
+    if m == 1:
+        K = HP.T.copy() / S[0, 0]
+    else:
+        K = np.linalg.solve(S, HP).T.copy()
+    dx = K @ r
+    IKH = np.eye(6) - _mm(K, H)
+    P = _mm(_mm(IKH, P), IKH.T.copy()) + _mm(_mm(K, R), K.T.copy())
+    # injection and reset (eskf.correct)
+    rot = _mm(rot, _rodrigues(dx[0], dx[1], dx[2]))
+    bias = bias + dx[3:]
+    G = np.eye(6)
+    hx, hy, hz = 0.5 * dx[0], 0.5 * dx[1], 0.5 * dx[2]
+    G[0, 1], G[0, 2], G[1, 0], G[1, 2], G[2, 0], G[2, 1] = hz, -hy, -hz, hx, hy, -hx
+    P = _mm(_mm(G, P), G.T.copy())
+    P = 0.5 * (P + P.T)
+    return rot, bias, P, gamma0, lam_p, lam_r
+
+
+@njit
+def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus, var_mag, mag_plaus,
+              thr_acc, thr_mag, use_mag, robust, n_iter, max_fading):
+    """The recursion of :func:`tcn_ahrs.filters.eskf.eskf` (predict, gravity-direction update,
+    heading update). Returns quat (B, N, 4), bias (B, N, 3), att_var (B, N, 3) and the robust
+    signals (B, N): gamma_acc, gamma_mag, fading, lam_r_acc, lam_r_mag."""
+    B, N = gyro.shape[0], gyro.shape[1]
+    quat = np.empty((B, N, 4))
+    bs = np.empty((B, N, 3))
+    var = np.empty((B, N, 3))
+    sig = np.zeros((5, B, N))
+    for b in prange(B):
+        rot = rot0[b].copy()
+        bias = bias0[b].copy()
+        P = P0[b].copy()
+        _to_quat(rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0], rot[2, 1], rot[2, 2],
+                 quat[b, 0])
+        bs[b, 0] = bias
+        for i in range(3):
+            var[b, 0, i] = P[i, i]
+        sig[2, b, 0] = 1.0
+        for k in range(1, N):
+            d = dt[b, k]
+            inc = _rodrigues((gyro[b, k, 0] - bias[0]) * d, (gyro[b, k, 1] - bias[1]) * d, (gyro[b, k, 2] - bias[2]) * d)
+            F = np.eye(6)
+            for i in range(3):
+                for j in range(3):
+                    F[i, j] = inc[j, i]
+                F[i, 3 + i] = -d
+            rot = _mm(rot, inc)
+            P = _mm(_mm(F, P), F.T.copy())
+            for i in range(6):
+                P[i, i] += q_rate[b, i] * d
+            # gravity direction
+            h0, h1, h2 = rot[2, 0], rot[2, 1], rot[2, 2]
+            r = np.empty(3)
+            r[0], r[1], r[2] = a_hat[b, k, 0] - h0, a_hat[b, k, 1] - h1, a_hat[b, k, 2] - h2
+            H = np.zeros((3, 6))
+            H[0, 1], H[0, 2], H[1, 0], H[1, 2], H[2, 0], H[2, 1] = -h2, h1, h2, -h0, -h1, h0
+            R = np.eye(3) * var_acc[b, k]
+            rot, bias, P, ga, lpa, lra = _observe(rot, bias, P, r, H, R, acc_plaus[b, k], thr_acc, robust, n_iter,
+                                                  max_fading)
+            fading = lpa
+            if use_mag:
+                mx, my, mz = mag[b, k, 0], mag[b, k, 1], mag[b, k, 2]
+                v0 = rot[0, 0] * mx + rot[0, 1] * my + rot[0, 2] * mz
+                v1 = rot[1, 0] * mx + rot[1, 1] * my + rot[1, 2] * mz
+                v2 = rot[2, 0] * mx + rot[2, 1] * my + rot[2, 2] * mz
+                vh2 = max(v0 * v0 + v1 * v1, 1e-12)
+                rr = math.atan2(v1, v0) - math.pi / 2
+                rr = (rr + math.pi) - 2 * math.pi * math.floor((rr + math.pi) / (2 * math.pi)) - math.pi
+                rm = np.empty(1)
+                rm[0] = rr
+                Hm = np.zeros((1, 6))
+                Hm[0, 0], Hm[0, 1], Hm[0, 2] = -rot[2, 0], -rot[2, 1], -rot[2, 2]
+                Rm = np.empty((1, 1))
+                Rm[0, 0] = var_mag[b, k] * ((v0 * v0 + v1 * v1 + v2 * v2) / vh2)
+                rot, bias, P, gm, lpm, lrm = _observe(rot, bias, P, rm, Hm, Rm, mag_plaus[b, k], thr_mag, robust,
+                                                      n_iter, max_fading)
+                fading *= lpm
+                sig[1, b, k], sig[4, b, k] = gm, lrm
+            sig[0, b, k], sig[2, b, k], sig[3, b, k] = ga, fading, lra
+            _to_quat(rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0], rot[2, 1],
+                     rot[2, 2], quat[b, k])
+            bs[b, k] = bias
+            for i in range(3):
+                var[b, k, i] = P[i, i]
+    return quat, bs, var, sig
+
+
 class torch_loops:
     """Context manager: ``backend="auto"`` takes the torch loops inside (for side-by-side timing)."""
 
@@ -269,4 +427,4 @@ def use_compiled(backend: str, *tensors) -> bool:
     return AVAILABLE and all(t.device.type == "cpu" and t.dtype == torch.float64 and not t.requires_grad for t in ts)
 
 
-__all__ = ["available", "use_compiled", "torch_loops", "ecf_loop", "mahony_loop", "madgwick_loop"]
+__all__ = ["available", "use_compiled", "torch_loops", "ecf_loop", "mahony_loop", "madgwick_loop", "eskf_loop"]

@@ -66,6 +66,7 @@ from torch import Tensor
 
 from .. import so3
 from ..conventions import GRAVITY
+from .compiled import eskf_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, unflatten
 from .kalman import chi2_threshold, kalman_update, symmetrize
 from .robust import robust_inflation, rolling_max
@@ -156,6 +157,7 @@ def eskf(
     max_fading: float = 10.0,
     n_iter: int = 3,
     plausible_window: float = 0.2,
+    backend: str = "auto",
 ) -> Dict[str, Tensor]:
     """Run the (adaptive-robust) error-state EKF.
 
@@ -182,6 +184,8 @@ def eskf(
                       from exploding - linearisation breaks when the attitude std gets large).
         plausible_window: the plausibility tests must hold over this many seconds (default 0.2).
         n_iter:       inflation iterations (Algorithm 1's ``while``).
+        backend:      ``"auto"``: the compiled loop (:mod:`tcn_ahrs.filters.compiled`) when nothing
+                      needs a gradient and all is float64 on the CPU; ``"torch"`` / ``"numba"`` force one.
         Numeric parameters broadcast as batch tensors.
     Returns:
         ``quat`` (..., N, 4), ``gyro_bias`` (..., N, 3), ``att_std`` (..., N, 3) rad (sqrt of
@@ -243,6 +247,21 @@ def eskf(
     # The nominal attitude is kept as a rotation matrix inside the loop (one exp per step
     # serves both the nominal propagation and F); quaternions are formed once at the end.
     rot = so3.quat_to_matrix(q)
+    if use_compiled(backend, gyro, accel, dt, q0, mag, b, *p_.values()):
+        npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+        zb = torch.zeros(B, n, dtype=dtype)
+        quat, bs, var, sg = eskf_loop(
+            npy(a_hat), npy(mag if mag is not None else torch.zeros_like(gyro)), npy(gyro), npy(dt), npy(rot), npy(b),
+            npy(P), npy(qd_rate), npy(var_acc), npy(acc_plaus), npy(var_mag if mag is not None else zb),
+            npy(mag_plaus if mag is not None else zb > 0), float(thr_acc), float(thr_mag), mag is not None,
+            bool(robust), int(n_iter), float(max_fading))
+        res = {"quat": torch.from_numpy(quat), "gyro_bias": torch.from_numpy(bs), "att_std": torch.from_numpy(var).sqrt()}
+        if robust:
+            sg = torch.from_numpy(sg)
+            res.update(mahalanobis_acc=sg[0], acc_gated=sg[3] > 1.0, fading=sg[2])
+            if mag is not None:
+                res.update(mahalanobis_mag=sg[1], mag_gated=sg[4] > 1.0)
+        return {k: unflatten(v, batch) for k, v in res.items()}
     rots, bs, variances = [rot], [b], [torch.diagonal(P, dim1=-2, dim2=-1)[:, :3]]
     sig = {k: [] for k in ("mahalanobis_acc", "mahalanobis_mag", "fading", "acc_gated", "mag_gated")}
     for k in range(1, n):
