@@ -240,19 +240,7 @@ def madgwick_loop(a_hat, m_hat, gyro, dt, q0, beta, use_mag):
 
 
 # ---------------------------------------------------------------------------- ES-EKF
-# Small dense helpers (loops, no BLAS call per 6x6 product).
-
-@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
-def _mm(A, B):
-    n, m, p = A.shape[0], A.shape[1], B.shape[1]
-    C = np.zeros((n, p))
-    for i in range(n):
-        for k in range(m):
-            a = A[i, k]
-            for j in range(p):
-                C[i, j] += a * B[k, j]
-    return C
-
+# Small dense helpers (loops on preallocated buffers: no allocation, no BLAS call per 6x6 product).
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)
 def _rodrigues(px, py, pz):
@@ -279,22 +267,69 @@ def _rodrigues(px, py, pz):
 
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)
-def _gamma(r, S):
-    """r^T S^-1 r (filters.kalman.mahalanobis)."""
-    return float(r @ np.linalg.solve(S, r))
+def _mm_into(A, B, C, transpose_b):
+    """C = A B (or A B^T), in place, no allocation."""
+    n, m = A.shape[0], A.shape[1]
+    p = B.shape[0] if transpose_b else B.shape[1]
+    for i in range(n):
+        for j in range(p):
+            acc = 0.0
+            for k in range(m):
+                acc += A[i, k] * (B[j, k] if transpose_b else B[k, j])
+            C[i, j] = acc
 
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)
-def _observe(rot, bias, P, r, H, R, plausible, thr, robust, n_iter, max_fading):
-    """eskf._observe: (robust inflation, Eqs. 39-42), Kalman update with the Joseph form, injection
-    and reset. Returns (rot, bias, P, gamma, lam_p, lam_r)."""
-    m = r.shape[0]
-    HP = _mm(H, P)
-    hph = _mm(HP, H.T.copy())
+def _solve_into(S, X, out, m):
+    """out = S^-1 X for the m x m (m = 1 or 3) innovation covariance, by its adjugate."""
+    if m == 1:
+        for j in range(X.shape[1]):
+            out[0, j] = X[0, j] / S[0, 0]
+        return
+    a, b, c = S[0, 0], S[0, 1], S[0, 2]
+    d, e, f = S[1, 0], S[1, 1], S[1, 2]
+    g, h, i = S[2, 0], S[2, 1], S[2, 2]
+    A, B_, C = e * i - f * h, -(d * i - f * g), d * h - e * g
+    det = a * A + b * B_ + c * C
+    inv = ((A, -(b * i - c * h), b * f - c * e), (B_, a * i - c * g, -(a * f - c * d)),
+           (C, -(a * h - b * g), a * e - b * d))
+    for j in range(X.shape[1]):
+        x0, x1, x2 = X[0, j], X[1, j], X[2, j]
+        out[0, j] = (inv[0][0] * x0 + inv[0][1] * x1 + inv[0][2] * x2) / det
+        out[1, j] = (inv[1][0] * x0 + inv[1][1] * x1 + inv[1][2] * x2) / det
+        out[2, j] = (inv[2][0] * x0 + inv[2][1] * x1 + inv[2][2] * x2) / det
+
+
+@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
+def _observe(rot, bias, P, r, H, R, m, plausible, thr, robust, n_iter, max_fading, w):
+    """eskf._observe on the first m rows of r (3,), H (3, 6), R (3, 3): (robust inflation,
+    Eqs. 39-42), Kalman update with the Joseph form, injection and reset, in place (rot, bias,
+    P); w: the work buffers. Returns (gamma, lam_p, lam_r)."""
+    HP, hph, S, SX, K, IKH, T6, KR, G, E, rn = w
+    for i in range(m):
+        for j in range(6):
+            acc = 0.0
+            for k in range(6):
+                acc += H[i, k] * P[k, j]
+            HP[i, j] = acc
+    for i in range(m):
+        for j in range(m):
+            acc = 0.0
+            for k in range(6):
+                acc += HP[i, k] * H[j, k]
+            hph[i, j] = acc
     gamma0, lam_p, lam_r = 0.0, 1.0, 1.0
     if robust:
         for it in range(n_iter + 1):
-            g = _gamma(r, lam_p * hph + lam_r * R)
+            for i in range(m):
+                for j in range(m):
+                    S[i, j] = lam_p * hph[i, j] + lam_r * R[i, j]
+            for i in range(m):
+                SX[i, 0] = r[i]
+            _solve_into(S, SX[:, :1], K[:m, :1], m)          # K used as scratch: S^-1 r
+            g = 0.0
+            for i in range(m):
+                g += r[i] * K[i, 0]
             if it == 0:
                 gamma0 = g
             if it == n_iter:
@@ -304,35 +339,84 @@ def _observe(rot, bias, P, r, H, R, plausible, thr, robust, n_iter, max_fading):
                 lam_p = min(lam_p * f, max_fading)
             else:
                 lam_r = lam_r * f
-        P = lam_p * P
-        R = lam_r * R
-        hph = lam_p * hph
-        HP = lam_p * HP
-    S = hph + R
-    if m == 1:
-        K = HP.T.copy() / S[0, 0]
-    else:
-        K = np.linalg.solve(S, HP).T.copy()
-    dx = K @ r
-    IKH = np.eye(6) - _mm(K, H)
-    P = _mm(_mm(IKH, P), IKH.T.copy()) + _mm(_mm(K, R), K.T.copy())
+    for i in range(6):
+        for j in range(6):
+            P[i, j] *= lam_p
+    for i in range(m):
+        for j in range(6):
+            HP[i, j] *= lam_p
+        for j in range(m):
+            hph[i, j] *= lam_p
+            S[i, j] = hph[i, j] + lam_r * R[i, j]
+    # K^T = S^-1 H P  (m x 6)
+    _solve_into(S, HP[:m], SX[:m], m)
+    dx = np.zeros(6)
+    for i in range(6):
+        acc = 0.0
+        for k in range(m):
+            K[i, k] = SX[k, i]
+            acc += SX[k, i] * r[k]
+        dx[i] = acc
+    # Joseph form: P = (I - K H) P (I - K H)^T + K R K^T
+    for i in range(6):
+        for j in range(6):
+            acc = 0.0
+            for k in range(m):
+                acc += K[i, k] * H[k, j]
+            IKH[i, j] = (1.0 if i == j else 0.0) - acc
+    _mm_into(IKH, P, T6, False)
+    _mm_into(T6, IKH, P, True)
+    for i in range(6):
+        for j in range(m):
+            acc = 0.0
+            for k in range(m):
+                acc += K[i, k] * lam_r * R[k, j]
+            KR[i, j] = acc
+    for i in range(6):
+        for j in range(6):
+            acc = 0.0
+            for k in range(m):
+                acc += KR[i, k] * K[j, k]
+            P[i, j] += acc
     # injection and reset (eskf.correct)
-    rot = _mm(rot, _rodrigues(dx[0], dx[1], dx[2]))
-    bias = bias + dx[3:]
-    G = np.eye(6)
+    Ex = _rodrigues(dx[0], dx[1], dx[2])
+    for i in range(3):
+        for j in range(3):
+            rn[i, j] = rot[i, 0] * Ex[0, j] + rot[i, 1] * Ex[1, j] + rot[i, 2] * Ex[2, j]
+    for i in range(3):
+        for j in range(3):
+            rot[i, j] = rn[i, j]
+        bias[i] += dx[3 + i]
+    # P <- G P G^T with G = diag(M, I), M = I - [dtheta/2]x: only the attitude rows/columns change
     hx, hy, hz = 0.5 * dx[0], 0.5 * dx[1], 0.5 * dx[2]
-    G[0, 1], G[0, 2], G[1, 0], G[1, 2], G[2, 0], G[2, 1] = hz, -hy, -hz, hx, hy, -hx
-    P = _mm(_mm(G, P), G.T.copy())
-    P = 0.5 * (P + P.T)
-    return rot, bias, P, gamma0, lam_p, lam_r
+    G[0, 0], G[0, 1], G[0, 2] = 1.0, hz, -hy
+    G[1, 0], G[1, 1], G[1, 2] = -hz, 1.0, hx
+    G[2, 0], G[2, 1], G[2, 2] = hy, -hx, 1.0
+    for i in range(3):
+        for j in range(6):
+            T6[i, j] = G[i, 0] * P[0, j] + G[i, 1] * P[1, j] + G[i, 2] * P[2, j]
+    for i in range(3, 6):
+        for j in range(6):
+            T6[i, j] = P[i, j]
+    for i in range(6):
+        for j in range(3):
+            P[i, j] = T6[i, 0] * G[j, 0] + T6[i, 1] * G[j, 1] + T6[i, 2] * G[j, 2]
+        for j in range(3, 6):
+            P[i, j] = T6[i, j]
+    for i in range(6):
+        for j in range(i + 1, 6):
+            a = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = a
+            P[j, i] = a
+    return gamma0, lam_p, lam_r
 
 
 @njit
 def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus, var_mag, mag_plaus,
               thr_acc, thr_mag, use_mag, robust, n_iter, max_fading):
     """The recursion of :func:`tcn_ahrs.filters.eskf.eskf` (predict, gravity-direction update,
-    heading update). Returns quat (B, N, 4), bias (B, N, 3), att_var (B, N, 3) and the robust
-    signals (B, N): gamma_acc, gamma_mag, fading, lam_r_acc, lam_r_mag."""
+    heading update), in place on per-run buffers. Returns quat (B, N, 4), bias (B, N, 3),
+    att_var (B, N, 3) and the robust signals (5, B, N): gamma_acc, gamma_mag, fading, lam_r_acc, lam_r_mag."""
     B, N = gyro.shape[0], gyro.shape[1]
     quat = np.empty((B, N, 4))
     bs = np.empty((B, N, 3))
@@ -342,6 +426,13 @@ def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus,
         rot = rot0[b].copy()
         bias = bias0[b].copy()
         P = P0[b].copy()
+        T6 = np.zeros((6, 6))
+        w = (np.zeros((3, 6)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 6)), np.zeros((6, 3)),
+             np.zeros((6, 6)), T6, np.zeros((6, 3)), np.zeros((6, 6)), np.zeros((3, 3)), np.zeros((3, 3)))
+        r = np.zeros(3)
+        H = np.zeros((3, 6))
+        R = np.zeros((3, 3))
+        rn = np.zeros((3, 3))
         _to_quat(rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0], rot[2, 1], rot[2, 2],
                  quat[b, 0])
         bs[b, 0] = bias
@@ -351,24 +442,37 @@ def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus,
         for k in range(1, N):
             d = dt[b, k]
             inc = _rodrigues((gyro[b, k, 0] - bias[0]) * d, (gyro[b, k, 1] - bias[1]) * d, (gyro[b, k, 2] - bias[2]) * d)
-            F = np.eye(6)
             for i in range(3):
                 for j in range(3):
-                    F[i, j] = inc[j, i]
-                F[i, 3 + i] = -d
-            rot = _mm(rot, inc)
-            P = _mm(_mm(F, P), F.T.copy())
+                    rn[i, j] = rot[i, 0] * inc[0, j] + rot[i, 1] * inc[1, j] + rot[i, 2] * inc[2, j]
+            for i in range(3):
+                for j in range(3):
+                    rot[i, j] = rn[i, j]
+            # P <- F P F^T, F = [[A, -dt I], [0, I]], A = inc^T, by blocks: rows 0-2 of F P ...
+            for i in range(3):
+                for j in range(6):
+                    T6[i, j] = inc[0, i] * P[0, j] + inc[1, i] * P[1, j] + inc[2, i] * P[2, j] - d * P[3 + i, j]
+            for i in range(3, 6):
+                for j in range(6):
+                    T6[i, j] = P[i, j]
+            # ... then (F P) F^T: columns 0-2 change, 3-5 are (F P)'s
+            for i in range(6):
+                for j in range(3):
+                    P[i, j] = T6[i, 0] * inc[0, j] + T6[i, 1] * inc[1, j] + T6[i, 2] * inc[2, j] - d * T6[i, 3 + j]
+                for j in range(3, 6):
+                    P[i, j] = T6[i, j]
             for i in range(6):
                 P[i, i] += q_rate[b, i] * d
-            # gravity direction
+            # gravity direction: r = a^ - R^T up, H = [[R^T up]x, 0]
             h0, h1, h2 = rot[2, 0], rot[2, 1], rot[2, 2]
-            r = np.empty(3)
             r[0], r[1], r[2] = a_hat[b, k, 0] - h0, a_hat[b, k, 1] - h1, a_hat[b, k, 2] - h2
-            H = np.zeros((3, 6))
+            for i in range(3):
+                for j in range(6):
+                    H[i, j] = 0.0
+                for j in range(3):
+                    R[i, j] = var_acc[b, k] if i == j else 0.0
             H[0, 1], H[0, 2], H[1, 0], H[1, 2], H[2, 0], H[2, 1] = -h2, h1, h2, -h0, -h1, h0
-            R = np.eye(3) * var_acc[b, k]
-            rot, bias, P, ga, lpa, lra = _observe(rot, bias, P, r, H, R, acc_plaus[b, k], thr_acc, robust, n_iter,
-                                                  max_fading)
+            ga, lpa, lra = _observe(rot, bias, P, r, H, R, 3, acc_plaus[b, k], thr_acc, robust, n_iter, max_fading, w)
             fading = lpa
             if use_mag:
                 mx, my, mz = mag[b, k, 0], mag[b, k, 1], mag[b, k, 2]
@@ -378,24 +482,22 @@ def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus,
                 vh2 = max(v0 * v0 + v1 * v1, 1e-12)
                 rr = math.atan2(v1, v0) - math.pi / 2
                 rr = (rr + math.pi) - 2 * math.pi * math.floor((rr + math.pi) / (2 * math.pi)) - math.pi
-                rm = np.empty(1)
-                rm[0] = rr
-                Hm = np.zeros((1, 6))
-                Hm[0, 0], Hm[0, 1], Hm[0, 2] = -rot[2, 0], -rot[2, 1], -rot[2, 2]
-                Rm = np.empty((1, 1))
-                Rm[0, 0] = var_mag[b, k] * ((v0 * v0 + v1 * v1 + v2 * v2) / vh2)
-                rot, bias, P, gm, lpm, lrm = _observe(rot, bias, P, rm, Hm, Rm, mag_plaus[b, k], thr_mag, robust,
-                                                      n_iter, max_fading)
+                r[0] = rr
+                for j in range(6):
+                    H[0, j] = 0.0
+                H[0, 0], H[0, 1], H[0, 2] = -rot[2, 0], -rot[2, 1], -rot[2, 2]
+                R[0, 0] = var_mag[b, k] * ((v0 * v0 + v1 * v1 + v2 * v2) / vh2)
+                gm, lpm, lrm = _observe(rot, bias, P, r, H, R, 1, mag_plaus[b, k], thr_mag, robust, n_iter,
+                                        max_fading, w)
                 fading *= lpm
                 sig[1, b, k], sig[4, b, k] = gm, lrm
             sig[0, b, k], sig[2, b, k], sig[3, b, k] = ga, fading, lra
             _to_quat(rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0], rot[2, 1],
                      rot[2, 2], quat[b, k])
-            bs[b, k] = bias
             for i in range(3):
+                bs[b, k, i] = bias[i]
                 var[b, k, i] = P[i, i]
     return quat, bs, var, sig
-
 
 class torch_loops:
     """Context manager: ``backend="auto"`` takes the torch loops inside (for side-by-side timing)."""
