@@ -357,15 +357,23 @@ def _observe(rot, bias, P, r, H, R, m, plausible, thr, robust, n_iter, max_fadin
             K[i, k] = SX[k, i]
             acc += SX[k, i] * r[k]
         dx[i] = acc
-    # Joseph form: P = (I - K H) P (I - K H)^T + K R K^T
+    # Joseph form P = (I - K H) P (I - K H)^T + K R K^T, using that H is zero outside the
+    # attitude columns: T = P - K (H P); P = T - (T H^T) K^T
     for i in range(6):
         for j in range(6):
             acc = 0.0
             for k in range(m):
-                acc += K[i, k] * H[k, j]
-            IKH[i, j] = (1.0 if i == j else 0.0) - acc
-    _mm_into(IKH, P, T6, False)
-    _mm_into(T6, IKH, P, True)
+                acc += K[i, k] * HP[k, j]
+            T6[i, j] = P[i, j] - acc
+    for i in range(6):
+        for k in range(m):
+            IKH[i, k] = T6[i, 0] * H[k, 0] + T6[i, 1] * H[k, 1] + T6[i, 2] * H[k, 2]   # (T H^T)[i, k]
+    for i in range(6):
+        for j in range(6):
+            acc = 0.0
+            for k in range(m):
+                acc += IKH[i, k] * K[j, k]
+            P[i, j] = T6[i, j] - acc
     for i in range(6):
         for j in range(m):
             acc = 0.0
