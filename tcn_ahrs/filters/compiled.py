@@ -62,24 +62,7 @@ def ecf_loop(a_hat, east_b, w_acc, w_mag, gyro, dt, r0, use_mag):
                 ez += wm * (mx * r01 - my * r00)
             d = dt[b, k]
             px, py, pz = (gyro[b, k, 0] + ex) * d, (gyro[b, k, 1] + ey) * d, (gyro[b, k, 2] + ez) * d
-            # Rodrigues, as so3.exp: E = I + A K + C K^2
-            t2 = px * px + py * py + pz * pz
-            if t2 < 1e-6:
-                A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-                C = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-            else:
-                t = math.sqrt(t2)
-                A = math.sin(t) / t
-                C = (1.0 - math.cos(t)) / t2
-            e00 = 1.0 + C * (-pz * pz - py * py)
-            e01 = A * -pz + C * (py * px)
-            e02 = A * py + C * (pz * px)
-            e10 = A * pz + C * (px * py)
-            e11 = 1.0 + C * (-pz * pz - px * px)
-            e12 = A * -px + C * (pz * py)
-            e20 = A * -py + C * (px * pz)
-            e21 = A * px + C * (py * pz)
-            e22 = 1.0 + C * (-py * py - px * px)
+            e00, e01, e02, e10, e11, e12, e20, e21, e22 = _rodrigues9(px, py, pz)
             n00 = r00 * e00 + r01 * e10 + r02 * e20
             n01 = r00 * e01 + r01 * e11 + r02 * e21
             n02 = r00 * e02 + r01 * e12 + r02 * e22
@@ -243,8 +226,9 @@ def madgwick_loop(a_hat, m_hat, gyro, dt, q0, beta, use_mag):
 # Small dense helpers (loops on preallocated buffers: no allocation, no BLAS call per 6x6 product).
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)
-def _rodrigues(px, py, pz):
-    """so3.exp of (px, py, pz) as a (3, 3) array."""
+def _rodrigues9(px, py, pz):
+    """so3.exp of (px, py, pz), ``E = I + A K + C K^2`` (same small-angle series), as 9 scalars
+    row by row."""
     t2 = px * px + py * py + pz * pz
     if t2 < 1e-6:
         A = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
@@ -253,16 +237,17 @@ def _rodrigues(px, py, pz):
         t = math.sqrt(t2)
         A = math.sin(t) / t
         C = (1.0 - math.cos(t)) / t2
+    return (1.0 + C * (-pz * pz - py * py), A * -pz + C * (py * px), A * py + C * (pz * px),
+            A * pz + C * (px * py), 1.0 + C * (-pz * pz - px * px), A * -px + C * (pz * py),
+            A * -py + C * (px * pz), A * px + C * (py * pz), 1.0 + C * (-py * py - px * px))
+
+
+@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
+def _rodrigues(px, py, pz):
+    """:func:`_rodrigues9` as a (3, 3) array."""
+    e = _rodrigues9(px, py, pz)
     E = np.empty((3, 3))
-    E[0, 0] = 1.0 + C * (-pz * pz - py * py)
-    E[0, 1] = A * -pz + C * (py * px)
-    E[0, 2] = A * py + C * (pz * px)
-    E[1, 0] = A * pz + C * (px * py)
-    E[1, 1] = 1.0 + C * (-pz * pz - px * px)
-    E[1, 2] = A * -px + C * (pz * py)
-    E[2, 0] = A * -py + C * (px * pz)
-    E[2, 1] = A * px + C * (py * pz)
-    E[2, 2] = 1.0 + C * (-py * py - px * px)
+    E[0, 0], E[0, 1], E[0, 2], E[1, 0], E[1, 1], E[1, 2], E[2, 0], E[2, 1], E[2, 2] = e
     return E
 
 
