@@ -123,6 +123,9 @@ class LikelihoodField:
         hit = params.z_hit * np.exp(-0.5 * (surface / params.sigma_hit) ** 2) / (params.sigma_hit * math.sqrt(2 * math.pi))
         table = np.append(np.log(hit + params.z_rand / params.z_max).ravel(), math.log(params.z_rand / params.z_max))
         self.log_p = torch.as_tensor(table, dtype=dtype, device=device)
+        # the distance field flat, with the same off-map entry (the largest distance)
+        self._distance_flat = torch.as_tensor(np.append(self.distance_np.ravel(), self.distance_np.max()),
+                                              dtype=dtype, device=device)
 
     def cell(self, x: Tensor, y: Tensor) -> Tensor:
         """Flat cell index of points (any shape); H W (the off-map entry) outside."""
@@ -133,8 +136,7 @@ class LikelihoodField:
 
     def lookup(self, x: Tensor, y: Tensor) -> Tensor:
         """Distance field at points (any shape), nearest cell; outside the map: the largest distance."""
-        flat = torch.cat([self.distance.reshape(-1), self.distance.new_full((1,), float(self.distance_np.max()))])
-        return torch.take(flat, self.cell(x, y))
+        return torch.take(self._distance_flat, self.cell(x, y))
 
     def log_likelihood(self, particles: Tensor, ranges: Tensor, angles: Tensor) -> Tensor:
         """Sum over beams of log p per particle (N,): ranges (M,) m (NaN or >= z_max: no return,
@@ -273,11 +275,11 @@ class Mcl:
                 self.particles = torch.cat([self.particles[keep], self.uniform(m)])
         ll = self.field.log_likelihood(self.particles, ranges.to(self.device, self.dtype),
                                        angles.to(self.device, self.dtype))
-        beams = max(int((torch.isfinite(ranges) & (ranges < p.z_max)).sum()), 1)
         # unnormalised weights relative to the best particle (the report's unnormalised weights,
         # shifted in log space so that exp cannot underflow to an all-zero set)
         self.weights = torch.exp(ll - ll.max())
         if p.alpha_slow > 0:
+            beams = max(int((torch.isfinite(ranges) & (ranges < p.z_max)).sum()), 1)
             w_avg = float(torch.exp(ll / beams).mean())        # per-beam geometric mean likelihood
             self.w_slow = w_avg if self.w_slow is None else self.w_slow + p.alpha_slow * (w_avg - self.w_slow)
             self.w_fast = w_avg if self.w_fast is None else self.w_fast + p.alpha_fast * (w_avg - self.w_fast)
