@@ -252,19 +252,6 @@ def _rodrigues(px, py, pz):
 
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)
-def _mm_into(A, B, C, transpose_b):
-    """C = A B (or A B^T), in place, no allocation."""
-    n, m = A.shape[0], A.shape[1]
-    p = B.shape[0] if transpose_b else B.shape[1]
-    for i in range(n):
-        for j in range(p):
-            acc = 0.0
-            for k in range(m):
-                acc += A[i, k] * (B[j, k] if transpose_b else B[k, j])
-            C[i, j] = acc
-
-
-@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
 def _solve_into(S, X, out, m):
     """out = S^-1 X for the m x m (m = 1 or 3) innovation covariance, by its adjugate."""
     if m == 1:
@@ -290,7 +277,7 @@ def _observe(rot, bias, P, r, H, R, m, plausible, thr, robust, n_iter, max_fadin
     """eskf._observe on the first m rows of r (3,), H (3, 6), R (3, 3): (robust inflation,
     Eqs. 39-42), Kalman update with the Joseph form, injection and reset, in place (rot, bias,
     P); w: the work buffers. Returns (gamma, lam_p, lam_r)."""
-    HP, hph, S, SX, K, IKH, T6, KR, G, E, rn = w
+    HP, hph, S, SX, K, THt, T6, KR, G, rn = w
     for i in range(m):
         for j in range(6):
             acc = 0.0
@@ -352,12 +339,12 @@ def _observe(rot, bias, P, r, H, R, m, plausible, thr, robust, n_iter, max_fadin
             T6[i, j] = P[i, j] - acc
     for i in range(6):
         for k in range(m):
-            IKH[i, k] = T6[i, 0] * H[k, 0] + T6[i, 1] * H[k, 1] + T6[i, 2] * H[k, 2]   # (T H^T)[i, k]
+            THt[i, k] = T6[i, 0] * H[k, 0] + T6[i, 1] * H[k, 1] + T6[i, 2] * H[k, 2]
     for i in range(6):
         for j in range(6):
             acc = 0.0
             for k in range(m):
-                acc += IKH[i, k] * K[j, k]
+                acc += THt[i, k] * K[j, k]
             P[i, j] = T6[i, j] - acc
     for i in range(6):
         for j in range(m):
@@ -421,7 +408,7 @@ def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus,
         P = P0[b].copy()
         T6 = np.zeros((6, 6))
         w = (np.zeros((3, 6)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 6)), np.zeros((6, 3)),
-             np.zeros((6, 6)), T6, np.zeros((6, 3)), np.zeros((6, 6)), np.zeros((3, 3)), np.zeros((3, 3)))
+             np.zeros((6, 3)), T6, np.zeros((6, 3)), np.zeros((6, 6)), np.zeros((3, 3)))
         r = np.zeros(3)
         H = np.zeros((3, 6))
         R = np.zeros((3, 3))
@@ -510,15 +497,19 @@ def use_compiled(backend: str, *tensors) -> bool:
     float64 and none requiring a gradient)."""
     if backend == "torch":
         return False
-    if backend == "numba":
-        if not AVAILABLE:
-            raise ImportError("backend='numba' needs numba: pip install numba (or the [fast] extra)")
-        return True
-    if backend != "auto":
-        raise ValueError(f"backend: expected 'auto', 'torch' or 'numba', got {backend!r}")
     import torch
 
     ts = [t for t in tensors if isinstance(t, torch.Tensor)]
+    if backend == "numba":
+        if not AVAILABLE:
+            raise ImportError("backend='numba' needs numba: pip install numba (or the [fast] extra)")
+        bad = [t for t in ts if t.device.type != "cpu" or t.requires_grad]
+        if bad:
+            raise ValueError("backend='numba' runs on CPU tensors without gradients; got one on "
+                             f"{bad[0].device} (requires_grad={bad[0].requires_grad}): use backend='torch' or 'auto'")
+        return True
+    if backend != "auto":
+        raise ValueError(f"backend: expected 'auto', 'torch' or 'numba', got {backend!r}")
     return AVAILABLE and all(t.device.type == "cpu" and t.dtype == torch.float64 and not t.requires_grad for t in ts)
 
 

@@ -8,7 +8,9 @@ position -- ``(L, lambda, h)`` in the n-frame (``"n"``, ENU), ECEF ``r^e`` in th
 (``"G"``: grid east, grid north, up; no singularity at the pole) -- and the gyro / accelerometer
 bias estimates (body). Error state (15, Eqs. 24-25), every error *computed minus true*:
 ``[phi (3), dv (3), dp (3), eps (3), nabla (3)]`` with ``C~ = (I - [phi x]) C`` (Eq. 10), ``dp`` =
-``(dL, dlambda, dh)`` (n) or ``dr^e`` (G).
+``(dL, dlambda, dh)`` (n) or ``dr^e`` (G); the bias states are the other way round, true minus
+estimated (``eps`` is the gyro bias the estimate still lacks: the estimate is subtracted from the
+increments, and a correction adds ``eps`` to it).
 
 * Mechanisation (Eqs. 5-7 in G; the same form in n): attitude ``C <- exp(-[w_if dt x]) C exp([dtheta x])``,
   velocity with the rotation correction of the increment and Coriolis/transport terms, position
@@ -233,6 +235,9 @@ def gnss_update(state: InsState, r_gnss: np.ndarray, std: float) -> np.ndarray:
     B = state.vel.shape[0]
     H = np.zeros((B, 3, 15))
     H[:, :, 6:9] = np.eye(3)
+    fix = np.isfinite(r_gnss).all(-1)                    # runs without a fix: a zero row adds nothing
+    r_gnss = np.where(fix[:, None], r_gnss, state.ecef())
+    H[~fix] = 0.0
     if state.frame == "n":
         lat, lon, h = earth.geodetic(r_gnss)
         z = state.pos - np.stack([lat, lon, h], -1)
@@ -244,6 +249,7 @@ def gnss_update(state: InsState, r_gnss: np.ndarray, std: float) -> np.ndarray:
     else:
         z = state.pos - r_gnss
         R = np.broadcast_to(np.eye(3) * std ** 2, (B, 3, 3)).copy()
+    z[~fix] = 0.0
     update(state, z, H, R)
     return z
 
@@ -271,7 +277,8 @@ def update(state: InsState, z: np.ndarray, H: np.ndarray, R: np.ndarray) -> None
 
 
 def correct(state: InsState, dx: np.ndarray) -> None:
-    """Inject an estimated error (computed minus true) and reset it to zero: ``C <- exp([phi x]) C~``."""
+    """Inject an estimated error and reset it to zero: ``C <- exp([phi x]) C~``, v and p minus their
+    (computed minus true) errors, the bias estimates plus theirs (true minus estimated)."""
     state.att = exp_so3(dx[:, 0:3]) @ state.att
     state.vel = state.vel - dx[:, 3:6]
     state.pos = state.pos - dx[:, 6:9]
@@ -347,6 +354,9 @@ def navigate(state: InsState, dtheta: np.ndarray, dv: np.ndarray, dt: float, gns
     over each GNSS interval with F at its start. Returns per recorded step ``ecef`` (B, T, 3),
     ``att_n`` (B, T, 3, 3) (C_b^n), ``gyro_bias``, ``accel_bias`` (B, T, 3), ``step`` (T,), ``frame`` (T,)."""
     B, K = dtheta.shape[:2]
+    if switch_at is not None and switch_at % gnss_every:
+        # the covariance propagates per GNSS interval with F of the interval's start frame
+        raise ValueError(f"switch_at: expected a multiple of gnss_every ({gnss_every}) steps, got {switch_at}")
     q = process_noise(noise, dt * gnss_every)
     rec = {k: [] for k in ("ecef", "att_n", "gyro_bias", "accel_bias", "step", "frame")}
     if state.P is None:
@@ -370,7 +380,7 @@ def navigate(state: InsState, dtheta: np.ndarray, dv: np.ndarray, dt: float, gns
             F[:, 3:6, 0:3] = skew(f_sum / gnss_every)
             state.P = propagate(state.P, F, dt * gnss_every, q)
             j = (k + 1) // gnss_every - 1
-            if gnss is not None and j < gnss.shape[1] and np.isfinite(gnss[:, j]).all():
+            if gnss is not None and j < gnss.shape[1] and np.isfinite(gnss[:, j]).any():
                 gnss_update(state, gnss[:, j], noise.gnss_std)
             if zupt_std is not None:
                 velocity_update(state, np.zeros_like(state.vel), zupt_std)

@@ -31,6 +31,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import so3
+
 
 @dataclass(frozen=True)
 class MclParams:
@@ -62,8 +64,7 @@ class MclParams:
     alpha_fast: float = 0.0
 
 
-def wrap(a: Tensor) -> Tensor:
-    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+wrap = so3.wrap_angle  # (-pi, pi]
 
 
 def odometry_increment(prev: Tensor, now: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
@@ -111,7 +112,6 @@ class LikelihoodField:
         self.params = params
         # distance from each cell centre to the nearest occupied cell centre (0 on obstacles)
         self.distance_np = distance_transform_edt(~self.grid) * self.res
-        self.distance = torch.as_tensor(self.distance_np, dtype=dtype, device=device)
         self.H, self.W = self.grid.shape
         self.device, self.dtype = device, dtype
         # the beam model per cell, precomputed in float64: log(z_hit N(d; 0, sigma) + z_rand / z_max),

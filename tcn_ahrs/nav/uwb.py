@@ -86,6 +86,8 @@ class UwbParams:
         (imu_gate_jerk dt)^2)`` against chi-square(3) at ``gate_alpha``; a rejected sample is
         replaced by ``a_ref`` (the prediction then coasts on the last good specific force).
     imu_gate_jerk: m/s^3, the motion's plausible jerk in that test.
+    imu_gate_max_hold: after this many rejections in a row the next sample is accepted (the
+        reference is stale, not every new sample an outlier: a gate must not lock out).
     diverged_m: a run whose position leaves the beacons by more than this (or turns non-finite)
         is marked ``diverged`` and its output NaN from there (the other runs of the batch go on).
     height_std: std (m) of a floor constraint, the known tag height as one more observation per
@@ -116,6 +118,7 @@ class UwbParams:
     diverged_m: float = 1e3
     imu_gate: bool = False
     imu_gate_jerk: float = 10.0
+    imu_gate_max_hold: int = 25
     init_pos: float = 0.3
     init_vel: float = 0.05
     init_att: float = 0.05
@@ -312,15 +315,18 @@ def arckf(acc: Tensor, gyro: Tensor, dt: float, ranges: Tensor, beacons: Tensor,
     centre = beacons.mean(0)
     state0 = (p.clone(), v.clone(), rot.clone(), bias.clone(), P.clone())
     acc_ref = acc[:, 0]
+    held = torch.zeros(B, dtype=torch.long)
     imu_rejected = torch.zeros(B, N, dtype=torch.bool)
+    diverged_step = torch.full((B,), N, dtype=torch.long)
     if params.imu_gate:
         imu_thr = chi2_threshold(params.gate_alpha, 3)
         imu_var = 2.0 * noise.accel ** 2 + (params.imu_gate_jerk * dt) ** 2
     for k in range(1, N):
         a_k = acc[:, k]
         if params.imu_gate:
-            bad = ((a_k - acc_ref) ** 2).sum(-1) / imu_var > imu_thr
+            bad = (((a_k - acc_ref) ** 2).sum(-1) / imu_var > imu_thr) & (held < params.imu_gate_max_hold)
             imu_rejected[:, k] = bad
+            held = torch.where(bad, held + 1, torch.zeros_like(held))
             a_k = torch.where(bad[:, None], acc_ref, a_k)
             acc_ref = a_k
         p, v, rot, P = predict(p, v, rot, P, a_k, gyro[:, k], dts, noise, gravity, bias)
@@ -329,7 +335,9 @@ def arckf(acc: Tensor, gyro: Tensor, dt: float, ranges: Tensor, beacons: Tensor,
         if bool(lost.any()):
             # a diverged run restarts from its initial state so that its batch's solves stay
             # finite; its output is NaN from here
+            diverged_step = torch.where(lost & ~diverged, torch.full_like(diverged_step, k), diverged_step)
             diverged = diverged | lost
+            acc_ref = torch.where(lost[:, None], acc[:, k], acc_ref)
             p, v, rot, bias, P = (torch.where(lost.view(-1, *[1] * (x.dim() - 1)), x0, x)
                                   for x, x0 in zip((p, v, rot, bias, P), state0))
         if bool(epoch[k]):
@@ -361,6 +369,17 @@ def arckf(acc: Tensor, gyro: Tensor, dt: float, ranges: Tensor, beacons: Tensor,
            "epoch_index": torch.tensor(rec["epoch_index"], dtype=torch.long)}
     for key in ("gamma", "cu", "at_threshold", "lam_p", "r_scale"):
         res[key] = torch.stack(rec[key], 1) if rec[key] else torch.zeros(B, 0)
+    # everything of a diverged run from its divergence on is NaN (False for flags): the restart
+    # only kept the batch's algebra finite
+    after = torch.arange(N)[None, :] >= diverged_step[:, None]                     # (B, N)
+    for key in ("quat", "bias", "pos_std"):
+        res[key] = torch.where(after[..., None], torch.full_like(res[key], float("nan")), res[key])
+    if len(rec["epoch_index"]):
+        ep_after = res["epoch_index"][None, :] >= diverged_step[:, None]           # (B, E)
+        for key in ("gamma", "cu", "r_scale"):
+            res[key] = torch.where(ep_after[..., None], torch.full_like(res[key], float("nan")), res[key])
+        res["lam_p"] = torch.where(ep_after, torch.full_like(res["lam_p"], float("nan")), res["lam_p"])
+        res["at_threshold"] = res["at_threshold"] & ~ep_after[..., None]
     res["diverged"] = diverged
     res["imu_rejected"] = imu_rejected
     return res

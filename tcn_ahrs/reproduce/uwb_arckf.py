@@ -149,10 +149,11 @@ def threshold_counts(tab: Dict[str, Any], key: str, level_index: int) -> Dict[st
     sims = tab["sims"][sl]
     ep = out["epoch_index"]
     outlier = np.stack([s["range_outlier"][ep] for s in sims])
-    fired = out["r_scale"][sl] > 1.0
+    fired = out["r_scale"][sl] > 1.0                        # NaN (a diverged run's rest): not fired
     ranges = np.stack([s["ranges"][ep] for s in sims])
-    valid = np.isfinite(ranges)
+    valid = np.isfinite(ranges) & np.isfinite(out["r_scale"][sl])   # a diverged run: until it diverged
     true = np.stack([np.linalg.norm(s["pos"][ep, None, :] - s["beacons"][None], axis=-1) for s in sims])
+    outlier = outlier & valid
     gross = outlier & (np.abs(ranges - true) > 1.0)      # contaminated by more than 10 sigma
     return {"at_threshold_per_beacon": at.sum(1).mean(0).round(1).tolist(),
             "fired_on_outliers": float(fired[outlier].mean()) if outlier.any() else None,
