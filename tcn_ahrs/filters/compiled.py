@@ -243,15 +243,6 @@ def _rodrigues9(px, py, pz):
 
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)
-def _rodrigues(px, py, pz):
-    """:func:`_rodrigues9` as a (3, 3) array."""
-    e = _rodrigues9(px, py, pz)
-    E = np.empty((3, 3))
-    E[0, 0], E[0, 1], E[0, 2], E[1, 0], E[1, 1], E[1, 2], E[2, 0], E[2, 1], E[2, 2] = e
-    return E
-
-
-@numba.njit(cache=True) if AVAILABLE else (lambda f: f)
 def _solve_into(S, X, out, m):
     """out = S^-1 X for the m x m (m = 1 or 3) innovation covariance, by its adjugate."""
     if m == 1:
@@ -277,7 +268,7 @@ def _observe(rot, bias, P, r, H, R, m, plausible, thr, robust, n_iter, max_fadin
     """eskf._observe on the first m rows of r (3,), H (3, 6), R (3, 3): (robust inflation,
     Eqs. 39-42), Kalman update with the Joseph form, injection and reset, in place (rot, bias,
     P); w: the work buffers. Returns (gamma, lam_p, lam_r)."""
-    HP, hph, S, SX, K, THt, T6, KR, G, rn = w
+    HP, hph, S, SX, K, THt, T6, KR, G, rn, dx = w
     for i in range(m):
         for j in range(6):
             acc = 0.0
@@ -322,7 +313,6 @@ def _observe(rot, bias, P, r, H, R, m, plausible, thr, robust, n_iter, max_fadin
             S[i, j] = hph[i, j] + lam_r * R[i, j]
     # K^T = S^-1 H P  (m x 6)
     _solve_into(S, HP[:m], SX[:m], m)
-    dx = np.zeros(6)
     for i in range(6):
         acc = 0.0
         for k in range(m):
@@ -359,10 +349,12 @@ def _observe(rot, bias, P, r, H, R, m, plausible, thr, robust, n_iter, max_fadin
                 acc += KR[i, k] * K[j, k]
             P[i, j] += acc
     # injection and reset (eskf.correct)
-    Ex = _rodrigues(dx[0], dx[1], dx[2])
+    e00, e01, e02, e10, e11, e12, e20, e21, e22 = _rodrigues9(dx[0], dx[1], dx[2])
     for i in range(3):
-        for j in range(3):
-            rn[i, j] = rot[i, 0] * Ex[0, j] + rot[i, 1] * Ex[1, j] + rot[i, 2] * Ex[2, j]
+        a0, a1, a2 = rot[i, 0], rot[i, 1], rot[i, 2]
+        rn[i, 0] = a0 * e00 + a1 * e10 + a2 * e20
+        rn[i, 1] = a0 * e01 + a1 * e11 + a2 * e21
+        rn[i, 2] = a0 * e02 + a1 * e12 + a2 * e22
     for i in range(3):
         for j in range(3):
             rot[i, j] = rn[i, j]
@@ -408,7 +400,8 @@ def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus,
         P = P0[b].copy()
         T6 = np.zeros((6, 6))
         w = (np.zeros((3, 6)), np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 6)), np.zeros((6, 3)),
-             np.zeros((6, 3)), T6, np.zeros((6, 3)), np.zeros((6, 6)), np.zeros((3, 3)))
+             np.zeros((6, 3)), T6, np.zeros((6, 3)), np.zeros((6, 6)), np.zeros((3, 3)), np.zeros(6))
+        inc = np.zeros((3, 3))
         r = np.zeros(3)
         H = np.zeros((3, 6))
         R = np.zeros((3, 3))
@@ -421,7 +414,9 @@ def eskf_loop(a_hat, mag, gyro, dt, rot0, bias0, P0, q_rate, var_acc, acc_plaus,
         sig[2, b, 0] = 1.0
         for k in range(1, N):
             d = dt[b, k]
-            inc = _rodrigues((gyro[b, k, 0] - bias[0]) * d, (gyro[b, k, 1] - bias[1]) * d, (gyro[b, k, 2] - bias[2]) * d)
+            (inc[0, 0], inc[0, 1], inc[0, 2], inc[1, 0], inc[1, 1], inc[1, 2], inc[2, 0], inc[2, 1],
+             inc[2, 2]) = _rodrigues9((gyro[b, k, 0] - bias[0]) * d, (gyro[b, k, 1] - bias[1]) * d,
+                                      (gyro[b, k, 2] - bias[2]) * d)
             for i in range(3):
                 for j in range(3):
                     rn[i, j] = rot[i, 0] * inc[0, j] + rot[i, 1] * inc[1, j] + rot[i, 2] * inc[2, j]
