@@ -10,6 +10,9 @@ from tcn_ahrs.export import ExportError, export_batch, export_streaming, read_me
 from tcn_ahrs.model.ahrs import LearnedAHRS
 
 TOL = 1e-5  # rad, the parity bound
+# step vs chunk: the same float32 network as matrix products per sample or as convolutions over a
+# chunk (other summation orders: ~1e-8 relative in the error terms); the filter is the same float64 code
+STEP_CHUNK_TOL = 1e-7
 N = 300
 RATE = 100.0
 
@@ -17,7 +20,8 @@ RATE = 100.0
 def _model(axes: int) -> LearnedAHRS:
     torch.manual_seed(3)
     kw = {} if axes == 9 else dict(mag_net="none", use_mag_term=False)
-    m = LearnedAHRS(axes=axes, loop="closed", tcn={"channels": [4, 4, 4, 4]}, **kw)
+    # a 0.5 s rest window: the rest phase below sets the bias state (rest gain > 0)
+    m = LearnedAHRS(axes=axes, loop="closed", tcn={"channels": [4, 4, 4, 4]}, closed_loop={"rest_time": 0.5}, **kw)
     nets = [m.calibration.gyro_error_net, m.calibration.acc_error_net, m.calibration.mag_error_net]
     for net in nets:
         if net is not None:  # zero-initialised output layers: give the error and trust terms a slope
@@ -66,11 +70,34 @@ def test_loaded_batch_and_streaming_match_evaluation(tmp_path, axes):
         assert float(_angle(q_ref, q_b).max()) < TOL
         assert float(_angle(q_ref, q_s).max()) < TOL
         assert float((w_b - w_ref).abs().max()) < TOL and float((w_s - w_b).abs().max()) < TOL
-    # step by step after reset = run
+    with torch.no_grad():
+        rest = model.run_sequence(imu[None], dt[None], so3.quat_to_matrix(q0.double())[None], 0)["rest"]
+    assert 50 < float(rest.sum()) < 200  # the comparison covers the bias update at rest
+    # step by step after reset = run, and chunks of any size = steps
     stream.reset(q0)
-    for k in range(5):
-        q_k, _ = stream.step(imu[k], 1.0 / RATE)
-        assert float(_angle(q_k[None], q_s[k:k + 1]).max()) < 1e-12
+    q_k = [stream.step(imu[k], 1.0 / RATE)[0] for k in range(N)]
+    assert float(_angle(torch.stack(q_k), q_s).max()) < STEP_CHUNK_TOL
+    stream.reset(q0)
+    q_c = [stream.step_chunk(imu[a:b], dt[a:b])[0] for a, b in ((0, 1), (1, 8), (8, 150), (150, 151), (151, N))]
+    assert float(_angle(torch.cat(q_c), q_s).max()) < STEP_CHUNK_TOL
+
+
+def test_streaming_chunk_refuses_bad_time_steps_before_changing_state(tmp_path):
+    model = _model(9)
+    export_streaming(model, tmp_path / "s.pt", {"rate_hz": RATE})
+    stream = torch.jit.load(str(tmp_path / "s.pt"))
+    imu, q0 = _imu(9, 1), torch.tensor([1.0, 0.0, 0.0, 0.0])
+    q_ref, _ = stream.run(imu[:20], 1.0 / RATE, q0)
+    stream.reset(q0)
+    stream.step_chunk(imu[:10], 1.0 / RATE)
+    with pytest.raises((ValueError, torch.jit.Error), match="dt"):
+        stream.step_chunk(imu[10:20], torch.zeros(10))
+    bad = imu[10:20].clone()
+    bad[3, 2] = float("nan")
+    with pytest.raises((ValueError, torch.jit.Error), match="non-finite"):
+        stream.step_chunk(bad, 1.0 / RATE)
+    q, _ = stream.step_chunk(imu[10:20], 1.0 / RATE)
+    assert float(_angle(q, q_ref[10:20]).max()) < STEP_CHUNK_TOL
 
 
 def test_closed_loop_export_refuses_other_network_precisions(tmp_path):

@@ -128,7 +128,10 @@ def _script(module: nn.Module, freeze: bool = True):
         scripted = torch.jit.script(module.eval())
         if not freeze:
             return scripted
-        keep = [n for n in ("metadata", "errors", "corrected_rate", "reset", "step", "run") if scripted._c._has_method(n)]
+        keep = [n for n in ("metadata", "errors", "corrected_rate", "reset", "step", "step_chunk", "run") if scripted._c._has_method(n)]
+        # state written in place by several methods stays one attribute: frozen, each method would
+        # get its own constant copy once saved and loaded (reset would not clear what step_chunk reads)
+        keep += [n for n in ("first_buffer", "ring_buffers", "rest_ring") if scripted._c.hasattr(n)]
         return torch.jit.freeze(scripted, preserved_attrs=keep)
 
 

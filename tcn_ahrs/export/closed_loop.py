@@ -3,13 +3,17 @@
 # No `from __future__ import annotations`: TorchScript reads the class-level attribute
 # annotations (List[Tensor], ...) as real types.
 import json
+import math
 from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 
 import torch
 from torch import Tensor, nn
 
 from .. import so3
+from ..model.closed_loop_step import closed_loop_update, matrix_to_quat_scalar, split_float32
+from .fused import fuse_model
 from .inputs import ExportError, _Inputs
+from .open_loop import StreamingAHRS
 
 
 class ClosedLoopBatch(_Inputs):
@@ -67,74 +71,232 @@ class ClosedLoopBatch(_Inputs):
         return self._quat(out["rot"][0]), self._omega(out)
 
 
-class ClosedLoopStreaming(ClosedLoopBatch):
+class ClosedLoopStreaming(StreamingAHRS):
     """The closed loop one sample per call: ``reset(q0)``; ``step(sample (C,), dt)`` ->
-    ``(quat (4,), omega (3,))``; ``run(imu, dt, q0)`` = reset + steps.
+    ``(quat (4,), omega (3,))``; ``step_chunk(samples (k, C), dt)`` -> ``(quat (k, 4), omega (k, 3))``
+    (the same numbers as k calls of ``step``, one network pass for the k samples); ``run(imu, dt,
+    q0)`` = reset + one chunk.
 
-    State: the last ``L = max(receptive field, 2 · rest window − 1)`` raw samples (what the
-    causal networks and the rest detector at the newest sample depend on), the attitude, the
-    bias state and the heading reference. Each step runs the same calibration and the same loop
-    code as the batch module, on that history (the calibration over all L samples: correct, but
-    ~L times the per-sample work of a ring-buffer network — the speed issue's to fuse).
+    State: one ring buffer per convolution layer (the stacked, BatchNorm-folded networks of
+    :func:`~tcn_ahrs.export.fused.fuse_model`, read through :class:`StreamingAHRS`), the rest
+    detector's running sums over its window with the index of the last unsteady sample, and the
+    filter's twelve floats (attitude, gyro bias) plus the heading reference. The per-sample filter
+    update is :func:`~tcn_ahrs.model.closed_loop_step.closed_loop_update`, the function the
+    batch module's loop and the library's compiled loop run.
     """
 
+    hidden_weights: List[Tensor]  # (TorchScript reads only this class's own annotations)
+    hidden_biases: List[Tensor]
+    hidden_dilations: List[int]
+    metadata_json: str
+    ring_buffers: List[Tensor]
+    spans: List[int]
+    tap_index: List[Tensor]
+    tap_offsets: List[int]
+    acc_gain_list: List[float]
+    mag_gain_list: List[float]
+    step_weights: List[Tensor]
+    step_biases: List[Tensor]
+    chunk_weights: List[Tensor]
+    chunk_biases: List[Tensor]
+    q_pre: List[float]
+    q_pre2: List[float]
+    q_att: List[float]
+    state: List[float]
+    east_ref: List[float]
+    rest_ring: List[float]
+    rest_sums: List[float]
+
     def __init__(self, model: nn.Module, metadata: Mapping[str, Any]):
-        super().__init__(model, metadata)
-        w = int(self.closed.rest_window)
-        self.history = int(max(int(model.receptive_field), 2 * w - 1))
-        self.register_buffer("buf", torch.zeros(self.history, self.axes, dtype=torch.float32))
-        self.register_buffer("buf_dt", torch.zeros(self.history, dtype=torch.float32))
-        self.register_buffer("rot", torch.eye(3, dtype=torch.float64).unsqueeze(0))
-        self.register_buffer("bias", torch.zeros(1, 3, dtype=torch.float64))
-        self.register_buffer("east_ref", torch.zeros(1, 3, dtype=torch.float64))
-        self.count = 0
+        if model.closed is None:
+            raise ExportError("ClosedLoopStreaming: the model has no closed loop (model.loop=open)")
+        fused = fuse_model(model)
+        super().__init__(fused, metadata, torch.float32)
+        closed = model.closed
+        window = int(closed.rest_window)
+        if window <= 0:
+            rate = metadata.get("rate_hz")
+            if not rate:
+                raise ExportError("closed-loop export: the rest window is unset and no rate_hz is known (pass rate=HZ)")
+            window = max(2, int(round(closed.rest_time * float(rate))))
+        self.window = window
+        self.use_acc = bool(closed.use_acc)
+        self.use_mag = bool(closed.use_mag) and self.axes == 9
+        self.k_acc = float(closed.log_acc_gain.detach().exp())
+        self.k_mag = float(closed.log_mag_gain.detach().exp())
+        self.k_bias = float(closed.log_bias_gain.detach().exp())
+        self.rest_tc = float(closed.log_rest_tc.detach().exp())
+        self.rest_gyro, self.rest_acc = float(closed.rest_gyro), float(closed.rest_acc)
+        self.acc_reject, self.gravity = float(closed.acc_reject), float(closed.gravity)
+        self.mag_min, self.mag_max = float(closed.mag_min), float(closed.mag_max)
+        # head: [M y − e ; −trust logits] = addmv(addmv(b, W, h), M, y, beta=−1) in float64 (Eqs. 12-14)
+        c = self.axes
+        w_err = self.out_weight_f64 if self.groups > 0 else torch.zeros(c, 0, dtype=torch.float64)
+        w_trust = (fused["trust_weight"] * math.sqrt(0.5) if self.groups > 0 else torch.zeros(2, 0, dtype=torch.float64))
+        self.register_buffer("head_weight", torch.cat([w_err, w_trust], 0).contiguous())
+        self.register_buffer("head_bias", torch.cat([fused["out_bias"], fused["trust_bias"]], 0).clone())
+        self.register_buffer("head_matrix", torch.cat([fused["calib_matrix"], torch.zeros(2, c, dtype=torch.float64)], 0))
+        self.state = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+        self.east_ref = [0.0, 0.0, 0.0]
+        self.rest_ring = [0.0] * (6 * window)
+        self.rest_sums = [0.0] * 6
+        self.last_unsteady_gyro = -window - 1
+        self.last_unsteady_acc = -window - 1
 
     @torch.jit.export
     def reset(self, q0: Tensor) -> None:
-        self.rot = so3.quat_to_matrix(self._q0(q0)).unsqueeze(0)
-        self.bias = torch.zeros(1, 3, dtype=torch.float64)
-        self.east_ref = torch.zeros(1, 3, dtype=torch.float64)
-        self.buf = torch.zeros(self.history, self.axes, dtype=torch.float32)
-        self.buf_dt = torch.zeros(self.history, dtype=torch.float32)
-        self.count = 0
+        """Start a new recording at attitude q0 (w, x, y, z), nav_from_body, ENU."""
+        rot: List[float] = so3.quat_to_matrix(self._q0(q0)).reshape(9).tolist()
+        self.state = rot + [0.0, 0.0, 0.0]
+        self.east_ref = [0.0, 0.0, 0.0]
+        # built by a loop, not as the literal `[0.0] * n`: TorchScript pools constant lists, and
+        # this one is written in place (a pooled constant would carry the old recording's values)
+        ring: List[float] = []
+        for _ in range(6 * self.window):
+            ring.append(0.0)
+        self.rest_ring = ring
+        self.rest_sums = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # replaced, never written in place
+        self.last_unsteady_gyro = -self.window - 1
+        self.last_unsteady_acc = -self.window - 1
+        self.t = 0
+        self._reset_rings()
+
+    def _rest(self, raw: List[float]) -> float:
+        """:func:`~tcn_ahrs.model.closed_loop.rest_detector` at the newest sample (raw gyro, acc):
+        deviation from the running mean over the window, and the last sample that deviated."""
+        w = self.window
+        t = self.t
+        base = 6 * (t % w)
+        ring = self.rest_ring
+        old = self.rest_sums
+        sums: List[float] = []
+        for i in range(6):
+            v = old[i] + raw[i]
+            if t >= w:
+                v -= ring[base + i]
+            ring[base + i] = raw[i]
+            sums.append(v)
+        self.rest_sums = sums
+        cnt = float(min(t + 1, w))
+        dg0, dg1, dg2 = raw[0] - sums[0] / cnt, raw[1] - sums[1] / cnt, raw[2] - sums[2] / cnt
+        da0, da1, da2 = raw[3] - sums[3] / cnt, raw[4] - sums[4] / cnt, raw[5] - sums[5] / cnt
+        if not math.sqrt(dg0 * dg0 + dg1 * dg1 + dg2 * dg2) < self.rest_gyro:
+            self.last_unsteady_gyro = t
+        if not math.sqrt(da0 * da0 + da1 * da1 + da2 * da2) < self.rest_acc:
+            self.last_unsteady_acc = t
+        if t + 1 >= w and t - self.last_unsteady_gyro >= w and t - self.last_unsteady_acc >= w:
+            return 1.0
+        return 0.0
+
+    def _filter(self, v: List[float], raw: List[float], dt: float) -> List[float]:
+        """One sample through the rest detector and the closed loop. v = head output (calibrated
+        C channels, then the negated acc / mag trust logits), raw the reading. Returns
+        [quat w, x, y, z, omega x, y, z] and advances the state."""
+        c = self.axes
+        rest = self._rest(raw)
+        s = self.state
+        gx, gy, gz = v[0], v[1], v[2]
+        ax, ay, az = v[3], v[4], v[5]
+        mx, my, mz = 0.0, 0.0, 0.0
+        if self.use_mag:  # east_b = unit(b̂ × a_raw) (Eq. 24's measured east)
+            bx, by, bz = v[6], v[7], v[8]
+            mx, my, mz = by * raw[5] - bz * raw[4], bz * raw[3] - bx * raw[5], bx * raw[4] - by * raw[3]
+            n = max(math.sqrt(mx * mx + my * my + mz * mz), 1e-9)
+            mx, my, mz = mx / n, my / n, mz / n
+        if self.t == 0:
+            if self.use_mag:  # heading reference: the measured east at the initial attitude, horizontal
+                e0 = s[0] * mx + s[1] * my + s[2] * mz
+                e1 = s[3] * mx + s[4] * my + s[5] * mz
+                n = max(math.sqrt(e0 * e0 + e1 * e1), 1e-9)
+                self.east_ref = [e0 / n, e1 / n, 0.0]
+            out = s
+            c0, c1, c2 = 0.0, 0.0, 0.0
+        else:
+            ka, km = 0.0, 0.0
+            acc_ok, mag_ok = True, True
+            if self.acc_reject > 0.0:  # Eq. 7 gates on the raw readings
+                acc_ok = abs(math.sqrt(raw[3] * raw[3] + raw[4] * raw[4] + raw[5] * raw[5]) - self.gravity) < self.acc_reject
+            mag_ok = acc_ok
+            if self.mag_max > 0.0 and c == 9:
+                m = math.sqrt(raw[6] * raw[6] + raw[7] * raw[7] + raw[8] * raw[8])
+                mag_ok = acc_ok and m > self.mag_min and m < self.mag_max
+            if self.use_acc and acc_ok:
+                ka = self.k_acc * 2.0 / (1.0 + math.exp(v[c]))  # 2 sigmoid(logit), v holds −logit
+            if self.use_mag and mag_ok:
+                km = self.k_mag * 2.0 / (1.0 + math.exp(v[c + 1]))
+            n = max(math.sqrt(ax * ax + ay * ay + az * az), 1e-9)
+            er = self.east_ref
+            out_t = closed_loop_update(s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11],
+                                       gx, gy, gz, ax / n, ay / n, az / n, mx, my, mz, ka, km,
+                                       min(1.0, rest * dt / self.rest_tc), er[0], er[1], er[2], dt, self.k_bias)
+            out = [out_t[0], out_t[1], out_t[2], out_t[3], out_t[4], out_t[5], out_t[6], out_t[7], out_t[8],
+                   out_t[9], out_t[10], out_t[11]]
+            c0, c1, c2 = out_t[12], out_t[13], out_t[14]
+            self.state = out
+        self.t += 1
+        qw, qx, qy, qz = matrix_to_quat_scalar(out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7], out[8])
+        return [qw, qx, qy, qz, gx - out[9] + c0, gy - out[10] + c1, gz - out[11] + c2]
 
     @torch.jit.export
-    def step(self, sample: Tensor, dt: float) -> Tuple[Tensor, Tensor]:
-        if sample.numel() != self.axes:
-            raise ValueError("sample: expected " + str(self.axes) + " values, got " + str(sample.numel()))
-        self._check_finite(sample, "sample")  # before any state changes (see StreamingAHRS.step)
-        self._check_step(dt, self.count == 0)
-        self.buf = torch.cat([self.buf[1:], sample.reshape(1, self.axes).to(torch.float32)], 0)
-        self.buf_dt = torch.cat([self.buf_dt[1:], torch.full([1], dt, dtype=torch.float32)], 0)
-        self.count += 1
-        m = min(self.count, self.history)  # fewer than `history` samples: all of them, as batch
-        x = self.buf[self.history - m:].unsqueeze(0)
-        d = self.buf_dt[self.history - m:].unsqueeze(0)
-        if self.count == 1:
-            out = self._run(x, d, self.rot, self.bias, None)  # the initial state; sets east_ref
-            self.east_ref = out["east_ref"]
-            return self._quat(self.rot[0]), self._omega(out)[0]
-        # the filter over the last two samples from the carried state (entry 0 = the state), the
-        # networks and the rest detector over the whole history: one call of the batch code
-        res = self.closed.run(self.calibration(x), x, d, self.rot, self.bias, self.east_ref, m - 2, torch.float64)
-        self.rot = res["rot"][:, 1]
-        self.bias = res["gyro_bias"][:, 1]
-        omega = res["gyro"][0, m - 1].to(torch.float64) - res["gyro_bias"][0, 1] + res["correction"][0, 1]
-        return self._quat(self.rot[0]), omega
+    def step(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:
+        """sample (C,) raw IMU, dt [s] since the previous sample (unused on the first call after
+        reset) -> (quat (4,) w,x,y,z nav_from_body ENU, omega (3,) rad/s), float64."""
+        if sample.dim() != 1 or sample.size(0) != self.axes:
+            raise ValueError("sample: expected shape (" + str(self.axes) + ",), got " + str(list(sample.shape)))
+        dtf = float(dt.item()) if isinstance(dt, Tensor) else float(dt)
+        # checked before any state changes: after an error the module goes on as if the sample
+        # had not been given (or reset() starts afresh)
+        self._check_finite(sample, "sample")
+        self._check_step(dtf, self.t == 0)
+        x = sample.to(torch.float64)
+        if self.groups > 0:
+            head = torch.addmv(torch.addmv(self.head_bias, self.head_weight, self._errors_step(sample)),
+                               self.head_matrix, x, beta=-1.0)
+        else:
+            head = torch.addmv(self.head_bias, self.head_matrix, x, beta=-1.0)
+        v: List[float] = head.tolist()
+        raw: List[float] = x.tolist()
+        out = self._f64_tensor(self._filter(v, raw, dtf))
+        return out[0:4], out[4:7]
 
-    def forward(self, sample: Tensor, dt: float) -> Tuple[Tensor, Tensor]:  # type: ignore[override]
+    @torch.jit.export
+    def step_chunk(self, samples: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:
+        """k samples (k, C) at once, dt float or (k,) (the first entry unused right after reset)
+        -> (quat (k, 4), omega (k, 3)) float64: what k calls of :meth:`step` return."""
+        self._check_imu(samples)
+        n = samples.size(0)
+        d: List[float] = self._dt(dt, n).tolist()
+        if self.t > 0 and not (d[0] > 0.0 and math.isfinite(d[0])):
+            raise ValueError("dt: expected a finite time step > 0 s since the previous sample, got " + str(d[0]))
+        x = samples.to(torch.float64)
+        if self.groups > 0:
+            head = torch.addmm(torch.addmm(self.head_bias, self._errors_chunk(samples), self.head_weight.t()),
+                               x, self.head_matrix.t(), beta=-1.0)
+        else:
+            head = torch.addmm(self.head_bias.expand(n, -1), x, self.head_matrix.t(), beta=-1.0)
+        vs: List[List[float]] = head.tolist()
+        raws: List[List[float]] = x.tolist()
+        hi: List[List[float]] = []
+        lo: List[List[float]] = []
+        for k in range(n):
+            vals = self._filter(vs[k], raws[k], d[k])
+            hk: List[float] = []
+            lk: List[float] = []
+            for val in vals:
+                a, b = split_float32(val)
+                hk.append(a)
+                lk.append(b)
+            hi.append(hk)
+            lo.append(lk)
+        out = torch.tensor(hi, dtype=torch.float64) + torch.tensor(lo, dtype=torch.float64)
+        return out[:, 0:4], out[:, 4:7]
+
+    def forward(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:  # type: ignore[override]
         return self.step(sample, dt)
 
     @torch.jit.export
     def run(self, imu: Tensor, dt: Union[float, Tensor], q0: Tensor) -> Tuple[Tensor, Tensor]:
+        """reset(q0), then imu (N, C) as one chunk -> quat (N, 4), omega (N, 3) (float64)."""
         self._check_imu(imu)
-        n = imu.size(0)
-        d = self._dt(dt, n, torch.float32)
         self.reset(q0)
-        qs: List[Tensor] = []
-        ws: List[Tensor] = []
-        for k in range(n):
-            q, w = self.step(imu[k], float(d[k]))
-            qs.append(q)
-            ws.append(w)
-        return torch.stack(qs, 0), torch.stack(ws, 0)
+        return self.step_chunk(imu, dt)

@@ -61,21 +61,31 @@ def fuse_model(model: nn.Module) -> Dict[str, Any]:
     cal = model.calibration
     axes = int(cal.axes)
     sl = {"gyro": slice(0, 3), "acc": slice(3, 6), "mag": slice(6, 9)}
+    trust = bool(getattr(cal, "trust", False))
+    # with trust, the magnetometer network also reads the accelerometer (Calibration.forward)
     inputs = {"gyro": list(range(axes)) if cal.gyro_input == "all" else [0, 1, 2],
-              "acc": [3, 4, 5], "mag": [6, 7, 8]}
+              "acc": [3, 4, 5], "mag": [3, 4, 5, 6, 7, 8] if trust else [6, 7, 8]}
+    trust_row = {"acc": 0, "mag": 1}
     nets = {"gyro": cal.gyro_error_net, "acc": cal.acc_error_net, "mag": cal.mag_error_net if axes == 9 else None}
     b_out = torch.zeros(axes, dtype=torch.float64)
+    b_trust = torch.zeros(2, dtype=torch.float64)  # logits of the closed loop's acc / mag trust
     tcns: List[Tuple[str, List[Tuple[Tensor, Tensor, int]], Tensor, Tensor]] = []
     for s, net in nets.items():
         if net is None:
             continue
         scale = float(cal.error_scale[s])
+        # output rows 0-2: the error term (times error_scale); row 3 (trust): the trust logit
         if isinstance(net, ConstantError):
-            b_out[sl[s]] += scale * net.bias.detach().double()
+            bias = net.bias.detach().double()
+            b_out[sl[s]] += scale * bias[0:3]
+            if bias.numel() > 3:
+                b_trust[trust_row[s]] += bias[3]
         elif isinstance(net, TCN):
             layers = _tcn_layers(net, f"calibration.{s}_error_net")
-            w_o = net.out.weight.detach().double()[:, :, 0] * scale  # (3, C_last)
-            b_o = net.out.bias.detach().double() * scale
+            w_o = net.out.weight.detach().double()[:, :, 0].clone()  # (3 or 4, C_last)
+            b_o = net.out.bias.detach().double().clone()
+            w_o[0:3] *= scale
+            b_o[0:3] *= scale
             tcns.append((s, layers, w_o, b_o))
         else:
             raise ExportError(f"calibration.{s}_error_net: unsupported module {type(net).__name__}")
@@ -103,11 +113,17 @@ def fuse_model(model: nn.Module) -> Dict[str, Any]:
                                     torch.cat([t[1][li][1] for t in tcns], 0), tcns[0][1][li][2]))
         c_last = tcns[0][2].shape[1]
         w_out = torch.zeros(axes, g * c_last, dtype=torch.float64)
+        w_trust = torch.zeros(2, g * c_last, dtype=torch.float64)
         for i, (s, _, w_o, b_o) in enumerate(tcns):
-            w_out[sl[s], i * c_last:(i + 1) * c_last] = w_o
-            b_out[sl[s]] += b_o
+            w_out[sl[s], i * c_last:(i + 1) * c_last] = w_o[0:3]
+            b_out[sl[s]] += b_o[0:3]
+            if w_o.shape[0] > 3:
+                w_trust[trust_row[s], i * c_last:(i + 1) * c_last] = w_o[3]
+                b_trust[trust_row[s]] += b_o[3]
         fused["out_weight"] = w_out
+        fused["trust_weight"] = w_trust
     fused["out_bias"] = b_out
+    fused["trust_bias"] = b_trust
     m = torch.zeros(axes, axes, dtype=torch.float64)
     for s, mat in (("gyro", cal.gyro_matrix), ("acc", cal.acc_matrix), ("mag", cal.mag_matrix)):
         if mat is not None and axes >= sl[s].stop:

@@ -176,6 +176,8 @@ class StreamingAHRS(BatchAHRS):
     mag_gain_list: List[float]
     step_weights: List[Tensor]
     step_biases: List[Tensor]
+    chunk_weights: List[Tensor]
+    chunk_biases: List[Tensor]
     q_pre: List[float]
     q_pre2: List[float]
     q_att: List[float]
@@ -231,6 +233,17 @@ class StreamingAHRS(BatchAHRS):
             self.step_weights.append((w_f.reshape(g, c_out, c_in, k).permute(0, 3, 2, 1).reshape(g, k * c_in, c_out) * 0.5)
                                      .to(net_dtype).contiguous())
             self.step_biases.append((b_f.reshape(g, 1, c_out) * _SQRT_HALF).to(net_dtype).contiguous())
+        # the same weights as convolutions over a chunk of samples (_errors_chunk): (G*C_out, C_in, k)
+        self.chunk_weights, self.chunk_biases = [], []
+        if g > 0:
+            c1 = self.first_weight_t.shape[1]
+            self.chunk_weights.append(self.first_weight_t.reshape(k, self.axes, c1).permute(2, 1, 0).clone())
+            self.chunk_biases.append(self.first_bias_step.reshape(-1).clone())
+        for w_s, b_s in zip(self.step_weights, self.step_biases):
+            c_out = w_s.shape[2]
+            self.chunk_weights.append(w_s.reshape(g, k, -1, c_out).permute(0, 3, 2, 1).reshape(g * c_out, -1, k)
+                                      .clone())
+            self.chunk_biases.append(b_s.reshape(-1).clone())
         # e = W_o h + b_o in float64, subtracted from M y in one addmv (Eqs. 12-14); the last
         # layer's features arrive as sqrt(2) * GELU
         self.register_buffer("out_weight_f64", fused["out_weight"].double() * _SQRT_HALF if g > 0
@@ -248,6 +261,10 @@ class StreamingAHRS(BatchAHRS):
         self.q_pre2 = list(q)
         self.q_att = list(q)
         self.t = 0
+        self._reset_rings()
+
+    def _reset_rings(self) -> None:
+        """The networks' state after ``reset``: the batch model's causal zero padding."""
         if self.groups > 0:
             # raw-sample buffer: the mean normalises to the batch model's zero padding
             self.first_buffer.copy_(self.input_mean.expand_as(self.first_buffer))
@@ -328,6 +345,33 @@ class StreamingAHRS(BatchAHRS):
             taps = buf.index_select(1, self.tap_index[self.tap_offsets[i + 1] + p]).view(g, 1, -1)
             h = self._gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
         return h.view(-1).to(torch.float64)
+
+    def _errors_chunk(self, samples: Tensor) -> Tensor:
+        """:meth:`_errors_step` for k samples (k, C) at once: (k, G*C_last) float64. Each layer is
+        one convolution over its ring buffer's history (in time order) followed by the chunk's
+        inputs, and the ring buffers end as if the samples had been stepped one by one."""
+        n = samples.size(0)
+        g = self.groups
+        t0 = self.t
+        x = samples.to(self.first_buffer.dtype)
+        span = self.first_span
+        order = torch.remainder(torch.arange(t0 - span + 1, t0, dtype=torch.long), span)
+        seq = torch.cat([self.first_buffer.index_select(0, order), x], 0)  # (span - 1 + n, C)
+        self.first_buffer.index_copy_(0, torch.remainder(torch.arange(t0 + n - span, t0 + n, dtype=torch.long), span),
+                                      seq[-span:] if seq.size(0) >= span else seq)
+        u = F.conv1d(seq.t().unsqueeze(0), self.chunk_weights[0], self.chunk_biases[0], dilation=self.first_dilation)
+        h = self._gelu_scaled(u).view(g, -1, n).transpose(1, 2)  # (G, n, C1) time-major
+        for i in range(len(self.ring_buffers)):
+            span = self.spans[i]
+            buf = self.ring_buffers[i]
+            order = torch.remainder(torch.arange(t0 - span + 1, t0, dtype=torch.long), span)
+            seq = torch.cat([buf.index_select(1, order), h], 1)  # (G, span - 1 + n, C_in)
+            buf.index_copy_(1, torch.remainder(torch.arange(t0 + n - span, t0 + n, dtype=torch.long), span),
+                            seq[:, -span:])
+            u = F.conv1d(seq.transpose(1, 2).reshape(1, -1, seq.size(1)), self.chunk_weights[i + 1],
+                         self.chunk_biases[i + 1], dilation=self.hidden_dilations[i], groups=g)
+            h = self._gelu_scaled(u).view(g, -1, n).transpose(1, 2)
+        return h.transpose(0, 1).reshape(n, -1).to(torch.float64)
 
     @staticmethod
     def _f64_tensor(vals: List[float]) -> Tensor:

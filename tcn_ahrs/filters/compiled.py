@@ -16,6 +16,8 @@ import math
 
 import numpy as np
 
+from ..model.closed_loop_step import matrix_to_quat_scalar
+
 try:
     import numba
 
@@ -77,31 +79,13 @@ def ecf_loop(a_hat, east_b, w_acc, w_mag, gyro, dt, r0, use_mag):
     return out
 
 
+_matrix_to_quat = numba.njit(cache=True)(matrix_to_quat_scalar) if AVAILABLE else matrix_to_quat_scalar
+
+
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)
 def _to_quat(m00, m01, m02, m10, m11, m12, m20, m21, m22, q):
     """:func:`tcn_ahrs.so3.matrix_to_quat` (Shepperd, w >= 0) of one matrix, into q (4,)."""
-    tr = m00 + m11 + m22
-    d0, d1, d2, d3 = 1 + tr, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22
-    best, dm = 0, d0
-    if d1 > dm:
-        best, dm = 1, d1
-    if d2 > dm:
-        best, dm = 2, d2
-    if d3 > dm:
-        best, dm = 3, d3
-    s_ = 2.0 * math.sqrt(max(dm, 1e-12))
-    if best == 0:
-        w, x, y, z = 0.25 * s_, (m21 - m12) / s_, (m02 - m20) / s_, (m10 - m01) / s_
-    elif best == 1:
-        w, x, y, z = (m21 - m12) / s_, 0.25 * s_, (m01 + m10) / s_, (m02 + m20) / s_
-    elif best == 2:
-        w, x, y, z = (m02 - m20) / s_, (m01 + m10) / s_, 0.25 * s_, (m12 + m21) / s_
-    else:
-        w, x, y, z = (m10 - m01) / s_, (m02 + m20) / s_, (m12 + m21) / s_, 0.25 * s_
-    w, x, y, z = _qnorm(w, x, y, z)
-    if w < 0:
-        w, x, y, z = -w, -x, -y, -z
-    q[0], q[1], q[2], q[3] = w, x, y, z
+    q[0], q[1], q[2], q[3] = _matrix_to_quat(m00, m01, m02, m10, m11, m12, m20, m21, m22)
 
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)

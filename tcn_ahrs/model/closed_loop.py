@@ -48,6 +48,8 @@ from torch import Tensor, nn
 
 from ..conventions import GRAVITY
 from ..filters.common import field_gates
+from . import closed_loop_step
+from .closed_loop_step import scan_scalar
 from .ecf import _unit
 
 
@@ -64,7 +66,12 @@ def rest_detector(gyro: Tensor, acc: Tensor, window: int, rest_gyro: float = mat
     the running mean (over ``window`` samples, fewer at the start) — VQF's test of steadiness,
     so a constant gyro bias still counts as rest. gyro, acc (B, N, 3). The first ``window - 1``
     samples are never rest (not watched long enough). The flag at sample k depends on samples
-    k - 2 window + 2 .. k only (what the streaming export keeps)."""
+    k - 2 window + 2 .. k only. The running means are taken in float64 (a float32 cumulative sum
+    over a long recording loses the digits the thresholds compare), so the streaming export's
+    running sums give the same flags."""
+    out_dtype = gyro.dtype
+    gyro = gyro.to(torch.float64)
+    acc = acc.to(torch.float64)
     n = gyro.shape[1]
     w = int(window)
     idx = torch.arange(1, n + 1, device=gyro.device)
@@ -78,7 +85,7 @@ def rest_detector(gyro: Tensor, acc: Tensor, window: int, rest_gyro: float = mat
     max_g = F.max_pool1d(F.pad(dev_g.unsqueeze(1), [w - 1, 0], value=0.0), w, 1).squeeze(1)
     max_a = F.max_pool1d(F.pad(dev_a.unsqueeze(1), [w - 1, 0], value=0.0), w, 1).squeeze(1)
     rest = (max_g < rest_gyro) & (max_a < rest_acc) & (idx >= w).unsqueeze(0)
-    return rest.to(gyro.dtype)
+    return rest.to(out_dtype)
 
 
 def east_reference(rot0: Tensor, acc0: Tensor, mag0: Tensor) -> Tensor:
@@ -144,6 +151,8 @@ class ClosedLoopFilter(nn.Module):
         mag_min, mag_max: µT; the magnetometer corrects heading only while the raw field norm lies
             in this range (Eq. 7; the Earth's field is 22–67 µT, a norm outside it is a local
             disturbance — a steel trolley reads 15 µT); 0, 0: off.
+        backend: the loop's implementation in eager mode (see :meth:`_scan`); TorchScript (the
+            exports) runs :func:`~tcn_ahrs.model.closed_loop_step.scan_scalar`.
     The gates multiply the networks' trust: they are the classical prior, the trust learns the rest.
     The rest window in samples is fixed at training time from the training rate
     (:meth:`set_rate`, saved as the buffer ``rest_window``; 0: from the data's median step),
@@ -153,7 +162,7 @@ class ClosedLoopFilter(nn.Module):
     def __init__(self, use_acc: bool = True, use_mag: bool = True, acc_gain: float = 0.3,
                  mag_gain: float = 0.1, bias_gain: float = 0.003, rest_time_constant: float = 2.0,
                  rest_time: float = 1.5, rest_gyro: float = math.radians(2.0), rest_acc: float = 0.5,
-                 acc_reject: float = 0.0, mag_min: float = 0.0, mag_max: float = 0.0):
+                 acc_reject: float = 0.0, mag_min: float = 0.0, mag_max: float = 0.0, backend: str = "auto"):
         super().__init__()
         self.acc_reject = float(acc_reject)
         self.gravity = float(GRAVITY)
@@ -163,6 +172,9 @@ class ClosedLoopFilter(nn.Module):
         self.rest_gyro = float(rest_gyro)
         self.rest_acc = float(rest_acc)
         self.register_buffer("rest_window", torch.zeros((), dtype=torch.long))
+        if backend not in ("auto", "torch", "numba"):
+            raise ValueError(f"ClosedLoopFilter: backend {backend!r}: expected 'auto', 'torch' or 'numba'")
+        self.backend = str(backend)
         self.use_acc = bool(use_acc)
         self.use_mag = bool(use_mag)
         self.log_acc_gain = nn.Parameter(torch.tensor(math.log(acc_gain)))
@@ -198,6 +210,22 @@ class ClosedLoopFilter(nn.Module):
         acc_ok = acc_ok.to(acc.dtype)
         mag_ok = mag_ok.to(acc.dtype)
         return acc_ok, mag_ok
+
+    @torch.jit.unused
+    def _scan(self, *args: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        """The loop (arguments of :func:`closed_loop_scan`): compiled by numba
+        (:mod:`~tcn_ahrs.model.closed_loop_step`, ~1000x faster) when nothing needs a gradient and
+        everything is float64 on the CPU (``backend="auto"``, evaluation), else the tensor scan
+        that training backpropagates through. ``backend``: "auto" | "torch" | "numba"."""
+        compiled_ok = (closed_loop_step.AVAILABLE and all(a.device.type == "cpu" and a.dtype == torch.float64
+                                                          for a in args)
+                       and not (torch.is_grad_enabled() and any(a.requires_grad for a in args)))
+        if self.backend == "numba" and not compiled_ok:
+            raise ValueError("ClosedLoopFilter(backend='numba'): needs numba and float64 CPU tensors without "
+                             "gradients (use backend='auto' or 'torch')")
+        if self.backend != "torch" and compiled_ok:
+            return closed_loop_step.scan_numba(*args)
+        return _scan(*args)
 
     @torch.jit.unused
     def gains(self) -> Dict[str, float]:
@@ -266,6 +294,11 @@ class ClosedLoopFilter(nn.Module):
         if self.use_acc:
             acc_gain = self.log_acc_gain.exp().to(gyro.dtype) * acc_trust.unsqueeze(-1)
         rest_gain = (rest.unsqueeze(-1) * dt_ / self.log_rest_tc.exp().to(gyro.dtype)).clamp_max(1.0)
-        rot, bias, corr = _scan(rot0, bias0, gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain,
-                                ref, dt_, self.log_bias_gain.exp().to(gyro.dtype))
+        bias_gain = self.log_bias_gain.exp().to(gyro.dtype)
+        if torch.jit.is_scripting():  # the exported modules: the scalar loop (closed_loop_step)
+            rot, bias, corr = scan_scalar(rot0, bias0, gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain,
+                                          ref, dt_, bias_gain)
+        else:
+            rot, bias, corr = self._scan(rot0, bias0, gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain,
+                                         ref, dt_, bias_gain)
         return {"rot": rot, "gyro_bias": bias, "correction": corr, "east_ref": ref}

@@ -1,0 +1,218 @@
+"""The closed loop's per-sample update on scalars: written once, run compiled by numba (the
+library's inference path) and by TorchScript (the exported batch and streaming modules).
+
+:func:`tcn_ahrs.model.closed_loop.closed_loop_scan` is the same recursion on tensors — the
+differentiable path that training backpropagates through. Its cost is ~25 tensor ops per
+sample (≈ 90 µs per sample in TorchScript, ≈ 190 µs eager), which is what made the learned
+AHRS slow in evaluation and export. Here the state is twelve floats (``nav_from_body`` row by
+row, the gyro bias) and one update is ~150 scalar operations: compiled by numba it costs
+≈ 0.1 µs, interpreted by TorchScript ≈ 4–5 µs. ``tests/test_closed_loop_step.py`` holds the
+three equal (1e-12 rad).
+
+Per sample k (see the module docstring of :mod:`tcn_ahrs.model.closed_loop` for the symbols)::
+
+    w   = k_acc τ_acc â × (C^T up) + k_mag τ_mag east_b × (C^T east_ref)   (Eqs. 23/24)
+    b  <- b − k_bias w dt + min(1, ρ dt / T_rest) (ω̂_gyr − b)
+    C  <- C exp((ω̂_gyr − b + w) dt)        exp by the Taylor series of the tensor scan
+
+Inputs per sample, in this order (:data:`ROW`): ω̂_gyr (3), â (3), east_b (3), the acc gain
+k_acc τ_acc, the mag gain k_mag τ_mag, the rest gain, dt.
+"""
+# No `from __future__ import annotations`: TorchScript reads the annotations as real types.
+import math
+from typing import List, Tuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+# columns of one input row
+ROW = ("gyro_x", "gyro_y", "gyro_z", "acc_unit_x", "acc_unit_y", "acc_unit_z", "east_x", "east_y",
+       "east_z", "acc_gain", "mag_gain", "rest_gain", "dt")
+# columns of one output row: C (row-major), b, w
+OUT = 15
+
+
+def closed_loop_update(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float,
+                       r20: float, r21: float, r22: float, b0: float, b1: float, b2: float,
+                       gx: float, gy: float, gz: float, ax: float, ay: float, az: float,
+                       mx: float, my: float, mz: float, ka: float, km: float, kr: float,
+                       e0: float, e1: float, e2: float, dt: float, kb: float
+                       ) -> Tuple[float, float, float, float, float, float, float, float, float,
+                                  float, float, float, float, float, float]:
+    """One sample: state C (r00..r22, ``nav_from_body``), bias b, inputs (see :data:`ROW`),
+    east_ref (e0, e1, e2) nav, k_bias kb -> (C', b', w). Same operations, in the same order, as
+    :func:`~tcn_ahrs.model.closed_loop.closed_loop_scan`."""
+    # Eq. 23: â × (C^T up), C^T up = third row of C
+    c0 = ka * (ay * r22 - az * r21)
+    c1 = ka * (az * r20 - ax * r22)
+    c2 = ka * (ax * r21 - ay * r20)
+    # Eq. 24: east_b × (C^T east_ref)
+    v0 = e0 * r00 + e1 * r10 + e2 * r20
+    v1 = e0 * r01 + e1 * r11 + e2 * r21
+    v2 = e0 * r02 + e1 * r12 + e2 * r22
+    c0 = c0 + km * (my * v2 - mz * v1)
+    c1 = c1 + km * (mz * v0 - mx * v2)
+    c2 = c2 + km * (mx * v1 - my * v0)
+    # integral term and, at rest, the gyro reading itself
+    b0 = b0 - kb * c0 * dt + kr * (gx - b0)
+    b1 = b1 - kb * c1 * dt + kr * (gy - b1)
+    b2 = b2 - kb * c2 * dt + kr * (gz - b2)
+    p0 = (gx - b0 + c0) * dt
+    p1 = (gy - b1 + c1) * dt
+    p2 = (gz - b2 + c2) * dt
+    t2 = p0 * p0 + p1 * p1 + p2 * p2
+    a = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0 * (1.0 - t2 / 42.0))
+    c = 0.5 - t2 / 24.0 * (1.0 - t2 / 30.0 * (1.0 - t2 / 56.0))
+    # C exp(φ^): each row r_i <- r_i + a (r_i × φ) + c ((r_i × φ) × φ)
+    k0, k1, k2 = r01 * p2 - r02 * p1, r02 * p0 - r00 * p2, r00 * p1 - r01 * p0
+    n00, n01, n02 = (r00 + a * k0 + c * (k1 * p2 - k2 * p1), r01 + a * k1 + c * (k2 * p0 - k0 * p2),
+                     r02 + a * k2 + c * (k0 * p1 - k1 * p0))
+    k0, k1, k2 = r11 * p2 - r12 * p1, r12 * p0 - r10 * p2, r10 * p1 - r11 * p0
+    n10, n11, n12 = (r10 + a * k0 + c * (k1 * p2 - k2 * p1), r11 + a * k1 + c * (k2 * p0 - k0 * p2),
+                     r12 + a * k2 + c * (k0 * p1 - k1 * p0))
+    k0, k1, k2 = r21 * p2 - r22 * p1, r22 * p0 - r20 * p2, r20 * p1 - r21 * p0
+    n20, n21, n22 = (r20 + a * k0 + c * (k1 * p2 - k2 * p1), r21 + a * k1 + c * (k2 * p0 - k0 * p2),
+                     r22 + a * k2 + c * (k0 * p1 - k1 * p0))
+    return n00, n01, n02, n10, n11, n12, n20, n21, n22, b0, b1, b2, c0, c1, c2
+
+
+def matrix_to_quat_scalar(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
+                          m20: float, m21: float, m22: float) -> Tuple[float, float, float, float]:
+    """:func:`tcn_ahrs.so3.matrix_to_quat` (Shepperd, unit, w >= 0) of one matrix, on scalars."""
+    tr = m00 + m11 + m22
+    d0, d1, d2, d3 = 1.0 + tr, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22
+    best, dm = 0, d0
+    if d1 > dm:
+        best, dm = 1, d1
+    if d2 > dm:
+        best, dm = 2, d2
+    if d3 > dm:
+        best, dm = 3, d3
+    s_ = 2.0 * math.sqrt(max(dm, 1e-12))
+    if best == 0:
+        w, x, y, z = 0.25 * s_, (m21 - m12) / s_, (m02 - m20) / s_, (m10 - m01) / s_
+    elif best == 1:
+        w, x, y, z = (m21 - m12) / s_, 0.25 * s_, (m01 + m10) / s_, (m02 + m20) / s_
+    elif best == 2:
+        w, x, y, z = (m02 - m20) / s_, (m01 + m10) / s_, 0.25 * s_, (m12 + m21) / s_
+    else:
+        w, x, y, z = (m10 - m01) / s_, (m02 + m20) / s_, (m12 + m21) / s_, 0.25 * s_
+    n = max(math.sqrt(w * w + x * x + y * y + z * z), 1e-12)  # so3._eps for float64
+    if w < 0.0:
+        n = -n
+    return w / n, x / n, y / n, z / n
+
+
+def split_float32(v: float) -> Tuple[float, float]:
+    """v = hi + lo with hi exact in float32 (Dekker's split at 2^29 + 1) and lo exact to 2^-24 of
+    itself: ``torch.tensor(hi) + torch.tensor(lo)`` is v to ~2^-48 relative, although TorchScript's
+    ``torch.tensor(List[float], dtype=float64)`` rounds each value through float32."""
+    c = 536870913.0 * v
+    hi = c - (c - v)
+    return hi, v - hi
+
+
+def scan_lists(state: List[float], east_ref: List[float], rows: List[List[float]], bias_gain: float,
+               out_hi: List[List[float]], out_lo: List[List[float]]) -> List[float]:
+    """The loop over ``rows`` (one :data:`ROW` list per sample) from ``state`` = C (9, row-major)
+    + b (3); appends C, b, w of every sample (15 floats) to ``out_hi`` / ``out_lo`` as
+    :func:`split_float32` halves; returns the last state. TorchScript-able (the exported modules'
+    loop); the Python interpreter runs it too, slowly."""
+    r00, r01, r02, r10, r11, r12 = state[0], state[1], state[2], state[3], state[4], state[5]
+    r20, r21, r22, b0, b1, b2 = state[6], state[7], state[8], state[9], state[10], state[11]
+    e0, e1, e2 = east_ref[0], east_ref[1], east_ref[2]
+    for x in rows:
+        (r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, c0, c1, c2) = closed_loop_update(
+            r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, x[0], x[1], x[2], x[3], x[4], x[5],
+            x[6], x[7], x[8], x[9], x[10], x[11], e0, e1, e2, x[12], bias_gain)
+        hi: List[float] = []
+        lo: List[float] = []
+        for v in [r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, c0, c1, c2]:
+            h, l_ = split_float32(v)
+            hi.append(h)
+            lo.append(l_)
+        out_hi.append(hi)
+        out_lo.append(lo)
+    return [r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2]
+
+
+def float64_tensor(vals: List[float]) -> Tensor:
+    """List of floats -> float64 tensor, exact to ~1e-15 relative. (TorchScript's
+    ``torch.tensor(List[float], dtype=float64)`` rounds through float32; the float32 residual adds
+    back what it lost, leaving a 2^-48 relative error.)"""
+    hi = torch.tensor(vals, dtype=torch.float64)
+    rounded: List[float] = hi.tolist()
+    return hi + torch.tensor([v - h for v, h in zip(vals, rounded)], dtype=torch.float64)
+
+
+# ------------------------------------------------------------------------------ numba
+try:
+    import numba
+
+    _update_nb = numba.njit(cache=True, inline="always")(closed_loop_update)
+    AVAILABLE = True
+except ImportError:  # pragma: no cover - the tensor scan is used instead
+    numba = None
+    AVAILABLE = False
+
+
+if AVAILABLE:
+    @numba.njit(cache=True, parallel=True)
+    def _scan_nb(state, rows, east_ref, bias_gain, out):  # pragma: no cover - compiled
+        """state (B, 12), rows (B, N, 13), east_ref (B, 3) -> out (B, N, 15) (row 0 = the state)."""
+        for b in numba.prange(rows.shape[0]):
+            s = state[b]
+            r00, r01, r02, r10, r11, r12 = s[0], s[1], s[2], s[3], s[4], s[5]
+            r20, r21, r22, b0, b1, b2 = s[6], s[7], s[8], s[9], s[10], s[11]
+            c0 = c1 = c2 = 0.0
+            e0, e1, e2 = east_ref[b, 0], east_ref[b, 1], east_ref[b, 2]
+            for k in range(rows.shape[1]):
+                if k > 0:
+                    x = rows[b, k]
+                    (r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, c0, c1, c2) = _update_nb(
+                        r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, x[0], x[1], x[2], x[3], x[4],
+                        x[5], x[6], x[7], x[8], x[9], x[10], x[11], e0, e1, e2, x[12], bias_gain)
+                o = out[b, k]
+                o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7], o[8] = r00, r01, r02, r10, r11, r12, r20, r21, r22
+                o[9], o[10], o[11], o[12], o[13], o[14] = b0, b1, b2, c0, c1, c2
+
+
+def scan_numba(rot: Tensor, bias: Tensor, gyro: Tensor, acc_unit: Tensor, east_b: Tensor, acc_gain: Tensor,
+               mag_gain: Tensor, rest_gain: Tensor, east_ref: Tensor, dt: Tensor, bias_gain: Tensor
+               ) -> Tuple[Tensor, Tensor, Tensor]:
+    """:func:`~tcn_ahrs.model.closed_loop.closed_loop_scan` (same arguments and returns, float64,
+    CPU, no gradient) compiled by numba; batch entries run in parallel threads."""
+    rows = torch.cat([gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain, dt], -1)
+    state = torch.cat([rot.reshape(-1, 9), bias], -1)
+    b, n = gyro.shape[0], gyro.shape[1]
+    out = np.empty((b, n, OUT))
+    _scan_nb(np.ascontiguousarray(state.double().numpy()), np.ascontiguousarray(rows.double().numpy()),
+             np.ascontiguousarray(east_ref.double().numpy()), float(bias_gain), out)
+    o = torch.from_numpy(out)
+    return o[..., 0:9].reshape(b, n, 3, 3), o[..., 9:12], o[..., 12:15]
+
+
+def scan_scalar(rot: Tensor, bias: Tensor, gyro: Tensor, acc_unit: Tensor, east_b: Tensor, acc_gain: Tensor,
+                mag_gain: Tensor, rest_gain: Tensor, east_ref: Tensor, dt: Tensor, bias_gain: Tensor
+                ) -> Tuple[Tensor, Tensor, Tensor]:
+    """The same through :func:`scan_lists` (what TorchScript runs in the exported modules;
+    batch entries one after the other). float64."""
+    rows_t = torch.cat([gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain, dt], -1).to(torch.float64)
+    state_t = torch.cat([rot.reshape(-1, 9), bias], -1).to(torch.float64)
+    b, n = gyro.shape[0], gyro.shape[1]
+    kb = float(bias_gain)
+    outs: List[Tensor] = []
+    for i in range(b):
+        rows: List[List[float]] = rows_t[i, 1:].tolist()
+        state: List[float] = state_t[i].tolist()
+        hi: List[List[float]] = []
+        lo: List[List[float]] = []
+        ref: List[float] = east_ref[i].to(torch.float64).tolist()
+        scan_lists(state, ref, rows, kb, hi, lo)
+        first = torch.cat([state_t[i], torch.zeros(3, dtype=torch.float64)]).unsqueeze(0)
+        if n > 1:
+            first = torch.cat([first, torch.tensor(hi, dtype=torch.float64) + torch.tensor(lo, dtype=torch.float64)], 0)
+        outs.append(first)
+    o = torch.stack(outs, 0)
+    return o[..., 0:9].reshape(b, n, 3, 3), o[..., 9:12], o[..., 12:15]
