@@ -10,7 +10,8 @@ import torch
 from torch import Tensor, nn
 
 from .. import so3
-from ..model.closed_loop_step import closed_loop_update, matrix_to_quat_scalar, split_float32
+from ..model.closed_loop_step import (closed_loop_update, east_reference_scalar, loop_inputs, matrix_to_quat_scalar,
+                                       rest_update, split_float32)
 from .fused import fuse_model
 from .inputs import ExportError, _Inputs
 from .open_loop import StreamingAHRS
@@ -161,79 +162,50 @@ class ClosedLoopStreaming(StreamingAHRS):
         self.t = 0
         self._reset_rings()
 
-    def _rest(self, raw: List[float]) -> float:
-        """:func:`~tcn_ahrs.model.closed_loop.rest_detector` at the newest sample (raw gyro, acc):
-        deviation from the running mean over the window, and the last sample that deviated."""
-        w = self.window
-        t = self.t
-        base = 6 * (t % w)
-        ring = self.rest_ring
-        old = self.rest_sums
-        sums: List[float] = []
-        for i in range(6):
-            v = old[i] + raw[i]
-            if t >= w:
-                v -= ring[base + i]
-            ring[base + i] = raw[i]
-            sums.append(v)
-        self.rest_sums = sums
-        cnt = float(min(t + 1, w))
-        dg0, dg1, dg2 = raw[0] - sums[0] / cnt, raw[1] - sums[1] / cnt, raw[2] - sums[2] / cnt
-        da0, da1, da2 = raw[3] - sums[3] / cnt, raw[4] - sums[4] / cnt, raw[5] - sums[5] / cnt
-        if not math.sqrt(dg0 * dg0 + dg1 * dg1 + dg2 * dg2) < self.rest_gyro:
-            self.last_unsteady_gyro = t
-        if not math.sqrt(da0 * da0 + da1 * da1 + da2 * da2) < self.rest_acc:
-            self.last_unsteady_acc = t
-        if t + 1 >= w and t - self.last_unsteady_gyro >= w and t - self.last_unsteady_acc >= w:
-            return 1.0
-        return 0.0
-
     def _filter(self, v: List[float], raw: List[float], dt: float) -> List[float]:
         """One sample through the rest detector and the closed loop. v = head output (calibrated
         C channels, then the negated acc / mag trust logits), raw the reading. Returns
         [quat w, x, y, z, omega x, y, z] and advances the state."""
         c = self.axes
-        rest = self._rest(raw)
+        t = self.t
+        w = self.window
+        g0, g1, g2, r3, r4, r5 = raw[0], raw[1], raw[2], raw[3], raw[4], raw[5]
+        ring = self.rest_ring
+        base = 6 * (t % w)
+        o0, o1, o2, o3, o4, o5 = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        if t >= w:  # the reading that leaves the rest window
+            o0, o1, o2, o3, o4, o5 = ring[base], ring[base + 1], ring[base + 2], ring[base + 3], ring[base + 4], ring[base + 5]
+        ring[base], ring[base + 1], ring[base + 2], ring[base + 3], ring[base + 4], ring[base + 5] = g0, g1, g2, r3, r4, r5
+        q = self.rest_sums
+        s0, s1, s2, s3, s4, s5, self.last_unsteady_gyro, self.last_unsteady_acc, rest = rest_update(
+            q[0], q[1], q[2], q[3], q[4], q[5], g0, g1, g2, r3, r4, r5, o0, o1, o2, o3, o4, o5, t, w,
+            self.last_unsteady_gyro, self.last_unsteady_acc, self.rest_gyro, self.rest_acc)
+        self.rest_sums = [s0, s1, s2, s3, s4, s5]
+        bx, by, bz, field = 0.0, 0.0, 0.0, 0.0
+        if c == 9:
+            bx, by, bz = v[6], v[7], v[8]
+            field = math.sqrt(raw[6] * raw[6] + raw[7] * raw[7] + raw[8] * raw[8])
+        ux, uy, uz, mx, my, mz, ka, km = loop_inputs(
+            v[3], v[4], v[5], bx, by, bz, r3, r4, r5, field, -v[c], -v[c + 1], self.use_acc, self.use_mag,
+            self.k_acc, self.k_mag, self.acc_reject, self.gravity, self.mag_min, self.mag_max)
         s = self.state
         gx, gy, gz = v[0], v[1], v[2]
-        ax, ay, az = v[3], v[4], v[5]
-        mx, my, mz = 0.0, 0.0, 0.0
-        if self.use_mag:  # east_b = unit(b̂ × a_raw) (Eq. 24's measured east)
-            bx, by, bz = v[6], v[7], v[8]
-            mx, my, mz = by * raw[5] - bz * raw[4], bz * raw[3] - bx * raw[5], bx * raw[4] - by * raw[3]
-            n = max(math.sqrt(mx * mx + my * my + mz * mz), 1e-9)
-            mx, my, mz = mx / n, my / n, mz / n
-        if self.t == 0:
-            if self.use_mag:  # heading reference: the measured east at the initial attitude, horizontal
-                e0 = s[0] * mx + s[1] * my + s[2] * mz
-                e1 = s[3] * mx + s[4] * my + s[5] * mz
-                n = max(math.sqrt(e0 * e0 + e1 * e1), 1e-9)
-                self.east_ref = [e0 / n, e1 / n, 0.0]
+        if t == 0:
+            if self.use_mag:
+                e0, e1, e2 = east_reference_scalar(s[0], s[1], s[2], s[3], s[4], s[5], mx, my, mz)
+                self.east_ref = [e0, e1, e2]
             out = s
             c0, c1, c2 = 0.0, 0.0, 0.0
         else:
-            ka, km = 0.0, 0.0
-            acc_ok, mag_ok = True, True
-            if self.acc_reject > 0.0:  # Eq. 7 gates on the raw readings
-                acc_ok = abs(math.sqrt(raw[3] * raw[3] + raw[4] * raw[4] + raw[5] * raw[5]) - self.gravity) < self.acc_reject
-            mag_ok = acc_ok
-            if self.mag_max > 0.0 and c == 9:
-                m = math.sqrt(raw[6] * raw[6] + raw[7] * raw[7] + raw[8] * raw[8])
-                mag_ok = acc_ok and m > self.mag_min and m < self.mag_max
-            if self.use_acc and acc_ok:
-                ka = self.k_acc * 2.0 / (1.0 + math.exp(v[c]))  # 2 sigmoid(logit), v holds −logit
-            if self.use_mag and mag_ok:
-                km = self.k_mag * 2.0 / (1.0 + math.exp(v[c + 1]))
-            n = max(math.sqrt(ax * ax + ay * ay + az * az), 1e-9)
             er = self.east_ref
             out_t = closed_loop_update(s[0], s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11],
-                                       gx, gy, gz, ax / n, ay / n, az / n, mx, my, mz, ka, km,
+                                       gx, gy, gz, ux, uy, uz, mx, my, mz, ka, km,
                                        min(1.0, rest * dt / self.rest_tc), er[0], er[1], er[2], dt, self.k_bias)
             out = [out_t[0], out_t[1], out_t[2], out_t[3], out_t[4], out_t[5], out_t[6], out_t[7], out_t[8],
                    out_t[9], out_t[10], out_t[11]]
             c0, c1, c2 = out_t[12], out_t[13], out_t[14]
             self.state = out
-        self.t += 1
+        self.t = t + 1
         qw, qx, qy, qz = matrix_to_quat_scalar(out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7], out[8])
         return [qw, qx, qy, qz, gx - out[9] + c0, gy - out[10] + c1, gz - out[11] + c2]
 

@@ -77,6 +77,71 @@ def closed_loop_update(r00: float, r01: float, r02: float, r10: float, r11: floa
     return n00, n01, n02, n10, n11, n12, n20, n21, n22, b0, b1, b2, c0, c1, c2
 
 
+def rest_update(s0: float, s1: float, s2: float, s3: float, s4: float, s5: float,
+                g0: float, g1: float, g2: float, a0: float, a1: float, a2: float,
+                o0: float, o1: float, o2: float, o3: float, o4: float, o5: float, t: int, window: int,
+                last_gyro: int, last_acc: int, rest_gyro: float, rest_acc: float
+                ) -> Tuple[float, float, float, float, float, float, int, int, float]:
+    """:func:`~tcn_ahrs.model.closed_loop.rest_detector` one sample at a time (the streaming
+    exports): running sums s of the raw gyro, acc over the window, plus the newest reading
+    (g, a), minus the one leaving it (o; zeros while t < window), the index of the last sample
+    that deviated from the window mean by ``rest_gyro`` / ``rest_acc`` or more. Returns the new
+    sums and indices and the flag at sample t (1.0: every sample of the last ``window`` stayed
+    within the thresholds, and the detector has watched ``window`` samples)."""
+    s0, s1, s2 = s0 + g0 - o0, s1 + g1 - o1, s2 + g2 - o2
+    s3, s4, s5 = s3 + a0 - o3, s4 + a1 - o4, s5 + a2 - o5
+    inv = 1.0 / float(min(t + 1, window))
+    d0, d1, d2 = g0 - s0 * inv, g1 - s1 * inv, g2 - s2 * inv
+    if not d0 * d0 + d1 * d1 + d2 * d2 < rest_gyro * rest_gyro:
+        last_gyro = t
+    d0, d1, d2 = a0 - s3 * inv, a1 - s4 * inv, a2 - s5 * inv
+    if not d0 * d0 + d1 * d1 + d2 * d2 < rest_acc * rest_acc:
+        last_acc = t
+    rest = 0.0
+    if t + 1 >= window and t - last_gyro >= window and t - last_acc >= window:
+        rest = 1.0
+    return s0, s1, s2, s3, s4, s5, last_gyro, last_acc, rest
+
+
+def loop_inputs(ax: float, ay: float, az: float, bx: float, by: float, bz: float,
+                rx: float, ry: float, rz: float, field_norm: float, acc_logit: float, mag_logit: float,
+                use_acc: bool, use_mag: bool, acc_gain: float, mag_gain: float, acc_reject: float,
+                gravity: float, mag_min: float, mag_max: float
+                ) -> Tuple[float, float, float, float, float, float, float, float]:
+    """What :meth:`ClosedLoopFilter.run` / ``forward`` compute from one sample before the loop:
+    calibrated acc (a), calibrated field (b), raw acc (r), the raw field's norm (µT) and the trust
+    logits -> unit(â) (3), east_b = unit(b̂ × a_raw) (3; zeros without the magnetometer),
+    k_acc τ_acc, k_mag τ_mag (the Eq. 7 gates applied)."""
+    mx, my, mz = 0.0, 0.0, 0.0
+    if use_mag:
+        mx, my, mz = by * rz - bz * ry, bz * rx - bx * rz, bx * ry - by * rx
+        n = max(math.sqrt(mx * mx + my * my + mz * mz), 1e-9)
+        mx, my, mz = mx / n, my / n, mz / n
+    acc_ok = True
+    if acc_reject > 0.0:
+        acc_ok = abs(math.sqrt(rx * rx + ry * ry + rz * rz) - gravity) < acc_reject
+    mag_ok = acc_ok
+    if mag_max > 0.0:
+        mag_ok = acc_ok and field_norm > mag_min and field_norm < mag_max
+    ka, km = 0.0, 0.0
+    if use_acc and acc_ok:
+        ka = acc_gain * 2.0 / (1.0 + math.exp(-acc_logit))
+    if use_mag and mag_ok:
+        km = mag_gain * 2.0 / (1.0 + math.exp(-mag_logit))
+    n = max(math.sqrt(ax * ax + ay * ay + az * az), 1e-9)
+    return ax / n, ay / n, az / n, mx, my, mz, ka, km
+
+
+def east_reference_scalar(r00: float, r01: float, r02: float, r10: float, r11: float, r12: float,
+                          mx: float, my: float, mz: float) -> Tuple[float, float, float]:
+    """:func:`~tcn_ahrs.model.closed_loop.east_reference` from the first two rows of the initial
+    ``nav_from_body`` and east_b = unit(b̂ × a_raw) of sample 0: the measured east, horizontal."""
+    e0 = r00 * mx + r01 * my + r02 * mz
+    e1 = r10 * mx + r11 * my + r12 * mz
+    n = max(math.sqrt(e0 * e0 + e1 * e1), 1e-9)
+    return e0 / n, e1 / n, 0.0
+
+
 def matrix_to_quat_scalar(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
                           m20: float, m21: float, m22: float) -> Tuple[float, float, float, float]:
     """:func:`tcn_ahrs.so3.matrix_to_quat` (Shepperd, unit, w >= 0) of one matrix, on scalars."""

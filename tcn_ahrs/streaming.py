@@ -1,0 +1,253 @@
+"""The learned closed loop one sample (or one chunk) per call, compiled by numba: the library's
+fast streaming runtime, beside the exported TorchScript module.
+
+Why two: the exported streaming module (:class:`tcn_ahrs.export.ClosedLoopStreaming`) needs only
+torch, but TorchScript interprets every tensor op (~1 µs each, ~40 per sample for three
+four-layer TCNs) and every scalar op (~25 ns) of the filter, which bounds it near 10 k samples/s
+(``python scripts/benchmark.py speed``). Here the same per-sample work — the ring buffers and
+matrix-vector products of the networks, the head, the rest detector and the filter update —
+runs as one compiled function: a few µs per sample, called from Python.
+
+Numbers: the same as the exported module (the weights come from the same folding:
+:class:`~tcn_ahrs.export.ClosedLoopStreaming`, BatchNorm folded, input normalisation in the
+first layer, GELU as ``u (1 + erf(u))`` on scaled pre-activations; the filter is
+:mod:`tcn_ahrs.model.closed_loop_step`'s scalar functions), with the networks in float64 instead
+of float32; ``tests/test_streaming.py`` holds it to the evaluation model within the export's
+parity bound. Frames and units as everywhere: raw body-frame readings (rad/s, m/s², µT),
+``nav_from_body`` quaternions (w, x, y, z), ENU.
+
+    stream = CompiledStreaming(model)            # a LearnedAHRS with the closed loop
+    stream.reset(q0)
+    quat, omega = stream.step(sample, dt)        # (4,), (3,) float64 numpy
+    quats, omegas = stream.step_chunk(samples, dt)
+
+numba is optional (``[fast]``, in ``[dev]``): without it this class raises ImportError.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Mapping, Optional, Tuple, Union
+
+import numpy as np
+import torch
+
+from .model import closed_loop_step as cls_
+
+try:
+    import numba
+
+    AVAILABLE = True
+except ImportError:  # pragma: no cover
+    numba = None
+    AVAILABLE = False
+
+# ints: header, then 8 entries per convolution layer (weights (groups, c_out, k c_in), taps oldest first), then the head's 3 offsets
+_HEADER = 8          # C, K, layers, window, use_acc, use_mag, H (features), rows of the head (C + 2)
+_PER_LAYER = 8       # groups, c_in, c_out (per group), dilation, span, weight offset, bias offset, ring offset
+# state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, rest ring (6 w), rings
+_STATE_RING = 24
+
+if AVAILABLE:
+    _update = numba.njit(cache=True, inline="always")(cls_.closed_loop_update)
+    _rest_update = numba.njit(cache=True, inline="always")(cls_.rest_update)
+    _loop_inputs = numba.njit(cache=True, inline="always")(cls_.loop_inputs)
+    _east_ref = numba.njit(cache=True, inline="always")(cls_.east_reference_scalar)
+    _to_quat = numba.njit(cache=True, inline="always")(cls_.matrix_to_quat_scalar)
+
+    @numba.njit(cache=True, fastmath=True, error_model="numpy")
+    def _steps(xs, dts, params, cfg, ints, state, out):  # pragma: no cover - compiled
+        """Samples xs (k, C) with steps dts (k,) through the networks and the filter; writes
+        [quat (4), omega (3)] per sample into out (k, 7) and advances state."""
+        c, kk, nl, w = ints[0], ints[1], ints[2], ints[3]
+        use_acc, use_mag, n_feat, n_head = ints[4] != 0, ints[5] != 0, ints[6], ints[7]
+        hw, hb, hm = ints[_HEADER + _PER_LAYER * nl], ints[_HEADER + _PER_LAYER * nl + 1], ints[_HEADER + _PER_LAYER * nl + 2]
+        width = 0
+        for li in range(nl):
+            width = max(width, ints[_HEADER + _PER_LAYER * li] * ints[_HEADER + _PER_LAYER * li + 2])
+        h_in = np.empty(max(width, c))
+        h_out = np.empty(max(width, c))
+        tap = np.empty(ints[1] * max(width, c))
+        v = np.empty(n_head)
+        for k in range(xs.shape[0]):
+            t = int(state[0])
+            x = xs[k]
+            # ---- networks: one ring buffer per layer, the newest input written at row t mod span
+            n_in = c
+            for i in range(c):
+                h_in[i] = x[i]
+            for li in range(nl):
+                base = _HEADER + _PER_LAYER * li
+                g, cin, cout, d, span = ints[base], ints[base + 1], ints[base + 2], ints[base + 3], ints[base + 4]
+                wo, bo, ro = ints[base + 5], ints[base + 6], ints[base + 7]
+                row_w = g * cin
+                p = t % span
+                for i in range(n_in):
+                    state[ro + p * row_w + i] = h_in[i]
+                n_tap = kk * cin
+                for gr in range(g):
+                    for j in range(kk):  # taps oldest first: t - (K - 1 - j) d
+                        rb = ro + ((t - (kk - 1 - j) * d) % span) * row_w + gr * cin
+                        for i in range(cin):
+                            tap[j * cin + i] = state[rb + i]
+                    for o in range(cout):  # one dot product over the K c_in taps per output
+                        # (a slice: indices from 0 need no negative-index wrap-around, so the
+                        # loop vectorises; params[offset + i] runs ~5x slower)
+                        wv = params[wo + (gr * cout + o) * n_tap:wo + (gr * cout + o + 1) * n_tap]
+                        u = params[bo + gr * cout + o]
+                        for i in range(n_tap):
+                            u += wv[i] * tap[i]
+                        h_out[gr * cout + o] = u * (1.0 + math.erf(u))
+                n_in = g * cout
+                for i in range(n_in):
+                    h_in[i] = h_out[i]
+            # ---- head: [M y − (W h + b) ; −trust logits]
+            for r in range(n_head):
+                wv = params[hw + r * n_feat:hw + (r + 1) * n_feat]
+                e = params[hb + r]
+                for i in range(n_feat):
+                    e += wv[i] * h_in[i]
+                mv = params[hm + r * c:hm + (r + 1) * c]
+                m = 0.0
+                for i in range(c):
+                    m += mv[i] * x[i]
+                v[r] = m - e
+            # ---- rest detector
+            rb = _STATE_RING + 6 * (t % w)
+            o0 = o1 = o2 = o3 = o4 = o5 = 0.0
+            if t >= w:
+                o0, o1, o2, o3, o4, o5 = state[rb], state[rb + 1], state[rb + 2], state[rb + 3], state[rb + 4], state[rb + 5]
+            for i in range(6):
+                state[rb + i] = x[i]
+            (state[16], state[17], state[18], state[19], state[20], state[21], lg, la, rest) = _rest_update(
+                state[16], state[17], state[18], state[19], state[20], state[21], x[0], x[1], x[2], x[3], x[4], x[5],
+                o0, o1, o2, o3, o4, o5, t, w, int(state[22]), int(state[23]), cfg[4], cfg[5])
+            state[22], state[23] = lg, la
+            # ---- filter
+            bx = by = bz = field = 0.0
+            if c == 9:
+                bx, by, bz = v[6], v[7], v[8]
+                field = math.sqrt(x[6] * x[6] + x[7] * x[7] + x[8] * x[8])
+            ux, uy, uz, mx, my, mz, ka, km = _loop_inputs(
+                v[3], v[4], v[5], bx, by, bz, x[3], x[4], x[5], field, -v[c], -v[c + 1], use_acc, use_mag,
+                cfg[0], cfg[1], cfg[6], cfg[7], cfg[8], cfg[9])
+            s = state
+            c0 = c1 = c2 = 0.0
+            if t == 0:
+                if use_mag:
+                    s[13], s[14], s[15] = _east_ref(s[1], s[2], s[3], s[4], s[5], s[6], mx, my, mz)
+            else:
+                dt = dts[k]
+                (s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11], s[12], c0, c1, c2) = _update(
+                    s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11], s[12], v[0], v[1], v[2],
+                    ux, uy, uz, mx, my, mz, ka, km, min(1.0, rest * dt / cfg[3]), s[13], s[14], s[15], dt, cfg[2])
+            state[0] = t + 1
+            out[k, 0], out[k, 1], out[k, 2], out[k, 3] = _to_quat(s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9])
+            out[k, 4], out[k, 5], out[k, 6] = v[0] - s[10] + c0, v[1] - s[11] + c1, v[2] - s[12] + c2
+
+
+class CompiledStreaming:
+    """The learned closed loop of ``model`` (a :class:`~tcn_ahrs.model.ahrs.LearnedAHRS` with
+    ``loop=closed``), one sample or one chunk per call, compiled by numba.
+
+    ``rate_hz`` fixes the rest window when the model does not record it (as the export's
+    ``rate=``). Methods take numpy arrays or tensors and return float64 numpy arrays:
+    ``reset(q0)``; ``step(sample (C,), dt)`` -> quat (4,), omega (3,); ``step_chunk(samples (k, C),
+    dt float | (k,))`` -> (k, 4), (k, 3); ``run(imu, dt, q0)`` = reset + one chunk. The dt of the
+    first sample after ``reset`` is not used. A sample with a NaN/inf reading or a dt that is not
+    finite and > 0 raises ValueError before any state changes."""
+
+    def __init__(self, model: torch.nn.Module, rate_hz: Optional[float] = None):
+        if not AVAILABLE:
+            raise ImportError("CompiledStreaming needs numba (pip install -e '.[fast]')")
+        from .export import ClosedLoopStreaming
+
+        meta: Mapping[str, Any] = {"rate_hz": rate_hz}
+        ts = ClosedLoopStreaming(model.eval(), meta)  # the folded weights (not scripted)
+        self.axes = c = int(ts.axes)
+        k = int(ts.kernel_size)
+        layers = []  # (groups, c_in, c_out, dilation, span, weight (groups, k*c_in, c_out), bias)
+        if ts.groups > 0:
+            w0 = ts.first_weight_t.double()
+            layers.append((1, c, w0.shape[1], ts.first_dilation, ts.first_span, w0.unsqueeze(0),
+                           ts.first_bias_step.double().reshape(-1)))
+            for w, b, d, span in zip(ts.step_weights, ts.step_biases, ts.hidden_dilations, ts.spans):
+                g, _, c_out = w.shape
+                layers.append((g, w.shape[1] // k, c_out, d, span, w.double(), b.double().reshape(-1)))
+        # weights as (groups, c_out, k c_in): each output one contiguous dot product over its taps
+        layers = [(g, c_in, c_out, d, span, w.transpose(1, 2).contiguous(), b)
+                  for g, c_in, c_out, d, span, w, b in layers]
+        params, ints = [], [c, k, len(layers), ts.window, int(ts.use_acc), int(ts.use_mag),
+                            ts.head_weight.shape[1], ts.head_weight.shape[0]]
+        size = 0
+        ring = _STATE_RING + 6 * ts.window
+        self._ring0 = None
+        for li, (g, c_in, c_out, d, span, w, b) in enumerate(layers):
+            ints += [g, c_in, c_out, d, span, size, size + w.numel(), ring]
+            params += [w.reshape(-1), b]
+            size += w.numel() + b.numel()
+            if li == 0:
+                self._ring0 = (ring, span, ts.input_mean.double().numpy())
+            ring += span * g * c_in
+        for t_ in (ts.head_weight, ts.head_bias, ts.head_matrix):
+            ints.append(size)
+            params.append(t_.double().reshape(-1))
+            size += t_.numel()
+        self._params = torch.cat(params).numpy().copy()
+        self._ints = np.asarray(ints, dtype=np.int64)
+        self._cfg = np.asarray([ts.k_acc, ts.k_mag, ts.k_bias, ts.rest_tc, ts.rest_gyro, ts.rest_acc,
+                                ts.acc_reject, ts.gravity, ts.mag_min, ts.mag_max], dtype=np.float64)
+        self._state = np.zeros(ring)
+        self._out1 = np.empty((1, 7))
+        self._dt1 = np.zeros(1)
+        self.reset(np.array([1.0, 0.0, 0.0, 0.0]))
+
+    def reset(self, q0) -> None:
+        """Start a new recording at attitude q0 (w, x, y, z), nav_from_body, ENU."""
+        from . import so3
+
+        q = torch.as_tensor(np.asarray(q0, dtype=np.float64)).reshape(-1)
+        if q.numel() != 4 or not bool(torch.isfinite(q).all()) or float(q.norm()) == 0.0:
+            raise ValueError(f"q0: expected a non-zero finite quaternion (w, x, y, z), got {q.tolist()}")
+        s = self._state
+        s[:] = 0.0
+        s[1:10] = so3.quat_to_matrix(q / q.norm()).reshape(9).numpy()
+        s[22] = s[23] = -float(self._ints[3]) - 1.0  # no unsteady sample yet
+        if self._ring0 is not None:  # raw-sample ring: the mean normalises to the causal zero padding
+            off, span, mean = self._ring0
+            s[off:off + span * self.axes] = np.tile(mean, span)
+
+    def _check(self, xs: np.ndarray, dts: np.ndarray) -> None:
+        if not np.isfinite(xs).all():
+            i = tuple(int(v) for v in np.argwhere(~np.isfinite(xs))[0])
+            raise ValueError(f"sample: non-finite value at index {list(i)} (expected finite readings: drop or "
+                             "interpolate that sample)")
+        first = 1 if self._state[0] == 0.0 else 0
+        later = dts[first:]
+        if later.size and not (np.isfinite(later).all() and (later > 0.0).all()):
+            raise ValueError(f"dt: expected finite time steps > 0 s since the previous sample, got {later.tolist()}")
+
+    def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
+        """One sample (C,) -> (quat (4,), omega (3,))."""
+        x = np.asarray(sample, dtype=np.float64).reshape(1, -1)
+        if x.shape[1] != self.axes:
+            raise ValueError(f"sample: expected {self.axes} values, got {x.shape[1]}")
+        self._dt1[0] = dt
+        self._check(x, self._dt1)
+        _steps(x, self._dt1, self._params, self._cfg, self._ints, self._state, self._out1)
+        return self._out1[0, 0:4].copy(), self._out1[0, 4:7].copy()
+
+    def step_chunk(self, samples, dt: Union[float, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+        """k samples (k, C) -> (quat (k, 4), omega (k, 3)): what k calls of :meth:`step` return."""
+        xs = np.ascontiguousarray(np.asarray(samples, dtype=np.float64))
+        if xs.ndim != 2 or xs.shape[1] != self.axes:
+            raise ValueError(f"samples: expected shape (k, {self.axes}), got {list(xs.shape)}")
+        dts = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],)))
+        self._check(xs, dts)
+        out = np.empty((xs.shape[0], 7))
+        _steps(xs, dts, self._params, self._cfg, self._ints, self._state, out)
+        return out[:, 0:4], out[:, 4:7]
+
+    def run(self, imu, dt, q0) -> Tuple[np.ndarray, np.ndarray]:
+        """reset(q0), then imu (N, C) -> quat (N, 4), omega (N, 3)."""
+        self.reset(q0)
+        return self.step_chunk(imu, dt)
