@@ -17,7 +17,7 @@ def test_quick_run_fields_and_files(tmp_path):
     cfg = {"quick": True, "device": "cpu", "out": str(tmp_path / "bench"),
            "speed": {"train": {"window": 64, "steps": 1, "warmup": 0},
                      "inference": {"samples": 200, "repeats": 1, "warmup": 0},
-                     "streaming": {"samples": 20, "warmup": 2, "run_samples": 20},
+                     "streaming": {"samples": 20, "warmup": 2, "chunk": 5},
                      "filters": {"samples": 50, "batches": [1, 3], "peers": ["vqf", "imufusion"]}}}
     res = bench.main(cfg)
     env = res["environment"]
@@ -27,7 +27,8 @@ def test_quick_run_fields_and_files(tmp_path):
 
     tr = res["train"]
     assert tr["baseline"] == "eager"
-    assert [r["variant"] for r in tr["rows"]] == ["eager", "loss_fp32"]
+    assert [r["variant"] for r in tr["rows"]] == ["eager", "bf16"]
+    assert tr["model"] == "closed" and set(tr["loss_curves"]) == {"eager", "bf16"}
     for r in tr["rows"]:
         assert _finite_pos(r["samples_per_s"]) and _finite_pos(r["epoch_s"]) and _finite_pos(r["schedule_h"])
         assert r["schedule_h"] == pytest.approx(r["epoch_s"] * tr["epochs"] / 3600)
@@ -38,12 +39,18 @@ def test_quick_run_fields_and_files(tmp_path):
     inf = res["inference"]
     names = [r["name"] for r in inf["rows"]]
     assert any(n.startswith("eager") for n in names) and any(n.startswith("TorchScript batch") for n in names)
+    assert any(n.startswith("CompiledStreaming.run") for n in names)
     assert all(_finite_pos(r["median_ms"]) for r in inf["rows"])
-    assert isinstance(inf["goal_met"], bool)
+    assert isinstance(inf["goal_met"], bool) and _finite_pos(inf["gemm_peak_gflops"])
+    assert inf["model"].startswith("checkpoints/broad9.ckpt")  # the shipped model, not a stand-in
 
     st = res["streaming"]
-    step = [r for r in st["rows"] if r["name"].startswith("TorchScript streaming step")]
-    assert len(step) == 1 and _finite_pos(step[0]["samples_per_s"]) and step[0]["p99_us"] >= step[0]["median_us"]
+    for name in ("TorchScript step (9-axis)", "CompiledStreaming step (numba, 9-axis)"):
+        step = [r for r in st["rows"] if r["name"] == name]
+        assert len(step) == 1 and _finite_pos(step[0]["samples_per_s"]) and step[0]["p99_us"] >= step[0]["median_us"]
+    chunk = [r for r in st["rows"] if r.get("chunk") == 5]
+    assert len(chunk) == 2 and all(_finite_pos(r["samples_per_s"]) for r in chunk)
+    assert isinstance(st["goal_met"], bool) and isinstance(st["chunk_goal_met"], bool)
 
     fi = res["filters"]
     got = {(r["name"], r.get("batch")) for r in fi["rows"] if "samples_per_s" in r}
@@ -84,6 +91,6 @@ def test_static_loss_equals_increment_loss():
 def test_broad_epoch_constant_fallback():
     p = dict(bench.DEFAULTS["train"], data_config=None)
     e = bench.broad_epoch(p)
-    # 16 recordings of ~37.6 k samples: (37573 - 3000) // 100 + 1 = 346 windows each
-    assert e["windows"] == 16 * 346 and e["steps"] == math.ceil(16 * 346 / 16)
+    # 16 recordings of ~37.6 k samples: (37573 - 1000) // 500 + 1 = 74 windows each, 32 per step
+    assert e["windows"] == 16 * 74 and e["steps"] == math.ceil(16 * 74 / 32)
     assert "constant" in e["source"]

@@ -5,21 +5,26 @@
 
 Sections (each one table, with ratios against the thing it should be compared with):
 
-* ``train``     — full training step of the 9-axis model (TCN calibration + open-loop ECF +
-  increment loss, forward + backward + AdamW step, as :class:`tcn_ahrs.train.AHRSModule`)
-  on the BROAD training shape (batch 16 x 3000 samples, data kept on the device), in IMU
-  samples/s; wall time of one epoch and of the paper's 1800 epochs on the BROAD training split
-  (exact window count from ``load_split`` when the data are there, else a constant; the
-  result says which). Variants: CPU ``eager`` (project default: float32 network, float64
-  loss products) / ``loss_fp32`` / ``compile``; CUDA ``fp32`` / ``tf32`` / ``bf16`` /
-  ``compile`` / ``cuda_graphs``. ``compile`` runs in a subprocess with a timeout.
-* ``inference`` — one minute of 100 Hz 9-axis data (6000 samples) through the eager model
-  (``LearnedAHRS.run_sequence``, what :class:`LearnedEstimator` runs) and the exported
-  TorchScript batch module (:func:`tcn_ahrs.export.export_batch`), on 1 CPU thread (and the
-  GPU for device=cuda); median of repeats after warm-up. Goal <= 15 ms on one CPU thread.
-* ``streaming`` — per-sample latency (median, p99) of the exported streaming module's
-  ``step`` on 1 CPU thread, its in-TorchScript ``run`` loop, and RIANN's ``predict_step``.
-  Goal >= 25 k samples/s and faster than RIANN's step mode.
+* ``train``     — the shipped recipe's training step (``model: closed``, experiment=broad9_cl:
+  32 streams x 1000-sample chunks after the networks' context, the closed loop as tensor ops,
+  attitude loss, backward, AdamW) in IMU samples/s, with the wall time of one epoch and of the
+  12-epoch schedule on the BROAD training split (exact window count from ``load_split`` when the
+  data are there, else a constant; the result says which). CPU variants ``eager`` (the recipe,
+  all cores) / ``threads1`` / ``bf16`` (networks under bfloat16 autocast) / ``compile`` (the
+  networks through torch.compile, in a subprocess with a timeout), and the loss curves of
+  ``curve_variants`` against ``eager`` from the same weights and batches. ``model: paper``
+  times the paper's open-loop model (16 x 3000 windows, increment loss; CUDA fp32 / tf32 /
+  cuda_graphs).
+* ``inference`` — one minute of 100 Hz 9-axis data (6000 samples) through the shipped model
+  (``checkpoints/broad9.ckpt``): evaluation's path (``LearnedAHRS.run_sequence``, the loop
+  compiled by numba), the exported TorchScript batch and streaming modules, the numba
+  :class:`~tcn_ahrs.streaming.CompiledStreaming`, the networks alone with their GFLOP/s next to
+  this core's measured matrix-product peak, and the loop as tensor ops for the ratio; 1 CPU
+  thread. Goal <= 15 ms.
+* ``streaming`` — per-sample latency (median, p99) of ``step`` and per-sample cost of
+  ``step_chunk`` (``chunk`` samples per call) of the exported module and of
+  ``CompiledStreaming``, 9- and 6-axis shipped models, beside RIANN's ``predict_step``.
+  Goals >= 25 k samples/s and faster than RIANN per sample, >= 1 M samples/s chunked.
 * ``filters``   — samples/s of the project's batched ECF / Mahony / ES-EKF on one recording
   and on ``batch`` parameter sets at once (aggregate), next to VQF and imufusion on the same
   simulated recording. Goal: batched aggregate >= VQF's single-recording rate.

@@ -131,20 +131,34 @@ def synthetic_imu(batch: int, n: int, axes: int, rate: float, seed: int = 0,
 
 
 def model_config(axes: int) -> Dict[str, Any]:
-    """The paper's model (conf/model/ahrs.yaml defaults) for ``axes`` 9 or 6."""
+    """The paper's open-loop model (``LearnedAHRS`` defaults: 16-32-64-128 TCNs, open-loop ECF)
+    for ``axes`` 9 or 6 — the training section's model."""
     cfg = {"variant": f"ahrs{axes}", "axes": axes}
     if axes == 6:
         cfg.update(mag_net="none", use_mag_term=False)
     return cfg
 
 
-def make_model(axes: int, seed: int = 0):
-    """An eval-mode :class:`LearnedAHRS` with non-trivial weights (BN statistics, output layers,
-    gains) and input statistics: the same compute as a trained model."""
+def shipped_config(axes: int) -> Dict[str, Any]:
+    """The default model of ``conf/model/ahrs.yaml`` (the learned closed loop) for ``axes``."""
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "model" / "ahrs.yaml")
+    cfg = OmegaConf.to_container(OmegaConf.merge(cfg, {"axes": axes, "variant": f"ahrs{axes}"}), resolve=True)
+    cfg.pop("defaults", None)
+    if axes == 6:
+        cfg.update(mag_net="none", use_mag_term=False)
+    return cfg
+
+
+def make_model(axes: int, seed: int = 0, rate: float = 100.0):
+    """An eval-mode :class:`LearnedAHRS` of the default architecture (:func:`shipped_config`)
+    with non-trivial weights (BN statistics, output layers, gains) and input statistics: the
+    same compute as a trained model. The rest window is set for ``rate`` Hz."""
     from ..model.ahrs import LearnedAHRS
 
     torch.manual_seed(seed)
-    model = LearnedAHRS.from_config(model_config(axes))
+    model = LearnedAHRS.from_config(shipped_config(axes))
     g = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for mod in model.modules():
@@ -158,7 +172,18 @@ def make_model(axes: int, seed: int = 0):
         mean = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 9.81, 0.0, 20.0, -45.0][:axes])
         std = torch.tensor([1.0, 1.0, 1.0, 3.0, 3.0, 3.0, 30.0, 30.0, 30.0][:axes])
         model.calibration.set_input_stats(mean, std)
+    if model.closed is not None:
+        model.closed.set_rate(rate)
     return model.eval()
+
+
+def gemm_peak_gflops(n: int = 1024, repeats: int = 5) -> float:
+    """This core's practical float32 peak: GFLOP/s of an n x n x n matrix product (the best of
+    ``repeats``), at the caller's torch thread count."""
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    torch.mm(a, b)
+    best = min(time_calls(lambda: torch.mm(a, b), 0, repeats))
+    return 2.0 * n ** 3 / best / 1e9
 
 
 def tcn_flops_per_sample(model) -> int:

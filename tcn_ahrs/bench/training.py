@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
-from .common import Threads, model_config, summary, sync, synthetic_imu, time_calls
+from .common import Threads, model_config, shipped_config, summary, sync, synthetic_imu, time_calls
 
 
 def broad_epoch(p: Dict[str, Any]) -> Dict[str, Any]:
@@ -76,14 +76,19 @@ def _train_setup(p: Dict[str, Any], device: str, seed: int):
 
     torch.manual_seed(seed)
     axes = int(p["axes"])
-    module = AHRSModule(model_config(axes), axes, window=int(p["window"]))
+    closed = p.get("model", "closed") == "closed"
+    cfg = shipped_config(axes) if closed else model_config(axes)
+    module = AHRSModule(cfg, axes, window=int(p["window"]), lr=1e-3 if closed else 0.01)
     model = module.model.to(device).train()
+    if model.closed is not None:
+        model.closed.set_rate(float(p["rate"]))
     mean = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 9.81, 0.0, 20.0, -45.0][:axes])
     std = torch.tensor([1.0, 1.0, 1.0, 3.0, 3.0, 3.0, 30.0, 30.0, 30.0][:axes])
     model.calibration.set_input_stats(mean, std)
     # a device-resident "store" holding 2 x batch windows; each step gathers random windows
     n_store = 2 * int(p["batch_size"])
-    store = synthetic_imu(1, n_store * int(p["window"]), axes, float(p["rate"]), seed, device)
+    span = int(p["window"]) + (model.receptive_field - 1 if model.closed is not None else 0)
+    store = synthetic_imu(1, n_store * span, axes, float(p["rate"]), seed, device)
     store = {k: v[0] for k, v in store.items()}
     return module, model, store
 
@@ -98,6 +103,8 @@ def make_train_step(variant: str, p: Dict[str, Any], device: str, seed: int = 0)
     B, N = int(p["batch_size"]), int(p["window"])
     module, model, store = _train_setup(p, device, seed)
     opt = module.configure_optimizers()["optimizer"]
+    if model.closed is not None:
+        return _closed_loop_step(variant, p, device, seed, module, model, store, opt)
     js, delta, noise = module.loss_js, float(module.hparams.huber_delta), {"gyro": 0.001, "acc": 0.01, "mag": 0.1}
     n_store = store["imu"].shape[0]
     gen = torch.Generator(device="cpu").manual_seed(seed)
@@ -160,6 +167,74 @@ def make_train_step(variant: str, p: Dict[str, Any], device: str, seed: int = 0)
         sync(device)
         info["compile_s"] = time.perf_counter() - t
     return step, info
+
+
+CLOSED_VARIANTS = ("eager", "threads1", "bf16", "compile")
+
+
+def _closed_loop_step(variant: str, p: Dict[str, Any], device: str, seed: int, module, model, store, opt):
+    """The shipped recipe's step (:meth:`tcn_ahrs.train.AHRSModule._closed_loop_step`, experiment
+    broad9_cl): B streams x one chunk of ``window`` samples after ``receptive_field - 1`` samples
+    of context; the calibration networks over all of it, the closed loop (the tensor scan, float32
+    as in training) over the chunk, :func:`~tcn_ahrs.losses.attitude_loss`, backward, AdamW.
+    Variants: ``eager`` (the recipe), ``threads1`` (one torch thread), ``bf16`` (the networks under
+    bfloat16 autocast; filter and loss in float32), ``compile`` (torch.compile of the networks)."""
+    from ..data import augment
+    from ..losses import attitude_loss
+
+    if variant not in CLOSED_VARIANTS:
+        raise ValueError(f"closed-loop training variant {variant!r}: expected one of {CLOSED_VARIANTS}")
+    B, L = int(p["batch_size"]), int(p["window"])
+    ctx = int(model.receptive_field) - 1
+    noise = {"gyro": 0.001, "acc": 0.01, "mag": 0.1}
+    n_store = store["imu"].shape[0]
+    gen = torch.Generator(device="cpu").manual_seed(seed)
+    arange = torch.arange(L + ctx, device=device)
+    calibrate = torch.compile(model.calibration) if variant == "compile" else model.calibration
+
+    def body():
+        starts = torch.randint(0, n_store - L - ctx + 1, (B,), generator=gen).to(device)
+        w = {k: v[starts[:, None] + arange] for k, v in store.items()}
+        imu = augment(w["imu"], noise)
+        if variant == "bf16":
+            with torch.autocast(torch.device(device).type, dtype=torch.bfloat16):
+                cal = calibrate(imu)
+            cal = {k: v.float() for k, v in cal.items()}
+        else:
+            cal = calibrate(imu)
+        out = model.closed.run(cal, imu, w["dt"], w["rot"][:, ctx], torch.zeros(B, 3, device=device), None, ctx,
+                               imu.dtype)
+        valid = w["valid"][:, ctx:].clone()
+        valid[:, 0] = False
+        loss = attitude_loss(out["rot"], w["rot"][:, ctx:], valid, float(module.hparams.attitude_delta))
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return loss
+
+    def step():
+        if variant == "threads1":
+            with Threads(1):
+                return body()
+        return body()
+
+    info: Dict[str, Any] = {"variant": variant, "compile_s": None}
+    if variant == "compile":
+        t = time.perf_counter()
+        step()
+        step()
+        info["compile_s"] = time.perf_counter() - t
+    return step, info
+
+
+def loss_curves(variants: List[str], p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, List[float]]:
+    """``curve_steps`` training steps of each variant from the same initial weights on the same
+    batches (same seed): does a faster variant train like the reference?"""
+    curves = {}
+    for v in variants:
+        step, _ = make_train_step(v, p, device, seed)
+        curves[v] = [float(step()) for _ in range(int(p["curve_steps"]))]
+    return curves
 
 
 def _finish_row(info: Dict[str, Any], ts: List[float], p: Dict[str, Any], device: str) -> Dict[str, Any]:
@@ -297,7 +372,7 @@ def bench_train(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, Any]
     variants = list(p["variants_cuda"] if cuda else p["variants_cpu"])
     notes = []
     if not cuda:
-        notes.append("CUDA variants (fp32, tf32, bf16, compile, CUDA graphs) skipped: device=cpu")
+        notes.append(f"CUDA variants {list(p['variants_cuda'])} skipped: device=cpu (no GPU)")
     epoch = broad_epoch(p)
     with Threads(p.get("threads")):
         threads = torch.get_num_threads()
@@ -312,6 +387,18 @@ def bench_train(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, Any]
             by["compile"]["wall_s"] = time.perf_counter() - t0
         rows = [by[v] for v in variants]
     base = next((r for r in rows if "samples_per_s" in r), None)
+    curves = {}
+    check = [v for v in p.get("curve_variants") or [] if v in variants and v != "compile"]
+    if check and int(p.get("curve_steps") or 0) > 0:
+        ref = variants[0]
+        with Threads(p.get("threads")):
+            curves = loss_curves([ref] + [v for v in check if v != ref], p, device, seed)
+        for v, c in curves.items():
+            r0 = curves[ref]
+            dev = max(abs(a - b) / max(abs(b), 1e-12) for a, b in zip(c, r0))
+            notes.append(f"loss curve, {len(c)} steps from the same weights and batches: {v} deviates from "
+                         f"{ref} by at most {100 * dev:.2f} % (first {c[0]:.4g} -> last {c[-1]:.4g}; "
+                         f"{ref}: {r0[0]:.4g} -> {r0[-1]:.4g})")
     per_pass = epoch["samples"]
     per_epoch = epoch["windows"] * int(p["window"])  # samples processed per epoch (overlapping windows)
     for r in rows:
@@ -323,7 +410,8 @@ def bench_train(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, Any]
         r["one_pass_s"] = per_pass / r["samples_per_s"]
     return {"shape": {"batch_size": int(p["batch_size"]), "window": int(p["window"]), "axes": int(p["axes"])},
             "baseline": base["variant"] if base else None, "threads": threads, "epoch": epoch,
-            "samples_per_epoch": per_epoch, "epochs": int(p["epochs"]), "rows": rows, "notes": notes}
+            "samples_per_epoch": per_epoch, "epochs": int(p["epochs"]), "rows": rows, "notes": notes,
+            "model": p.get("model", "closed"), "loss_curves": curves}
 
 
 # =========================================================================== inference
