@@ -44,7 +44,7 @@ except ImportError:  # pragma: no cover
 # ints: header, then 8 entries per convolution layer (weights (groups, c_out, k c_in), taps oldest first), then the head's 3 offsets
 _HEADER = 8          # C, K, layers, window, use_acc, use_mag, H (features), rows of the head (C + 2)
 _PER_LAYER = 8       # groups, c_in, c_out (per group), dilation, span, weight offset, bias offset, ring offset
-# state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, rest ring (6 w), rings
+# state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, rest ring (6 w)
 _STATE_RING = 24
 
 if AVAILABLE:
@@ -55,9 +55,11 @@ if AVAILABLE:
     _to_quat = numba.njit(cache=True, inline="always")(cls_.matrix_to_quat_scalar)
 
     @numba.njit(cache=True, fastmath=True, error_model="numpy")
-    def _steps(xs, dts, params, cfg, ints, state, out):  # pragma: no cover - compiled
+    def _steps(xs, dts, feats, params, cfg, ints, state, rings, out):  # pragma: no cover - compiled
         """Samples xs (k, C) with steps dts (k,) through the networks and the filter; writes
-        [quat (4), omega (3)] per sample into out (k, 7) and advances state."""
+        [quat (4), omega (3)] per sample into out (k, 7) and advances state and rings. feats
+        (k, H): the networks' last features already computed for these samples (then the
+        networks are skipped), or an empty (0, H) array."""
         c, kk, nl, w = ints[0], ints[1], ints[2], ints[3]
         use_acc, use_mag, n_feat, n_head = ints[4] != 0, ints[5] != 0, ints[6], ints[7]
         hw, hb, hm = ints[_HEADER + _PER_LAYER * nl], ints[_HEADER + _PER_LAYER * nl + 1], ints[_HEADER + _PER_LAYER * nl + 2]
@@ -71,24 +73,31 @@ if AVAILABLE:
         for k in range(xs.shape[0]):
             t = int(state[0])
             x = xs[k]
-            # ---- networks: one ring buffer per layer, the newest input written at row t mod span
+            # ---- networks: one ring buffer per layer (groups, span, c_in), float32 as the
+            # exported module's; the newest input written at row t mod span
             n_in = c
             for i in range(c):
                 h_in[i] = x[i]
-            for li in range(nl):
+            if feats.shape[0] > 0:
+                for i in range(n_feat):
+                    h_in[i] = feats[k, i]
+                nl_run = 0
+            else:
+                nl_run = nl
+            for li in range(nl_run):
                 base = _HEADER + _PER_LAYER * li
                 g, cin, cout, d, span = ints[base], ints[base + 1], ints[base + 2], ints[base + 3], ints[base + 4]
                 wo, bo, ro = ints[base + 5], ints[base + 6], ints[base + 7]
-                row_w = g * cin
                 p = t % span
-                for i in range(n_in):
-                    state[ro + p * row_w + i] = h_in[i]
+                for gr in range(g):
+                    for i in range(cin):
+                        rings[ro + (gr * span + p) * cin + i] = h_in[gr * cin + i]
                 n_tap = kk * cin
                 for gr in range(g):
                     for j in range(kk):  # taps oldest first: t - (K - 1 - j) d
-                        rb = ro + ((t - (kk - 1 - j) * d) % span) * row_w + gr * cin
+                        rb = ro + (gr * span + (t - (kk - 1 - j) * d) % span) * cin
                         for i in range(cin):
-                            tap[j * cin + i] = state[rb + i]
+                            tap[j * cin + i] = rings[rb + i]
                     for o in range(cout):  # one dot product over the K c_in taps per output
                         # (a slice: indices from 0 need no negative-index wrap-around, so the
                         # loop vectorises; params[offset + i] runs ~5x slower)
@@ -179,15 +188,28 @@ class CompiledStreaming:
         params, ints = [], [c, k, len(layers), ts.window, int(ts.use_acc), int(ts.use_mag),
                             ts.head_weight.shape[1], ts.head_weight.shape[0]]
         size = 0
-        ring = _STATE_RING + 6 * ts.window
-        self._ring0 = None
-        for li, (g, c_in, c_out, d, span, w, b) in enumerate(layers):
+        ring = 0
+        for g, c_in, c_out, d, span, w, b in layers:
             ints += [g, c_in, c_out, d, span, size, size + w.numel(), ring]
             params += [w.reshape(-1), b]
             size += w.numel() + b.numel()
-            if li == 0:
-                self._ring0 = (ring, span, ts.input_mean.double().numpy())
             ring += span * g * c_in
+        # the ring buffers live in one float32 array that the exported module's (unscripted)
+        # buffers view: step runs the networks here, step_chunk through ts._errors_chunk
+        # (convolutions over the chunk), on the same state
+        self._rings = np.zeros(max(ring, 1), dtype=np.float32)
+        if ts.groups > 0:
+            flat = torch.from_numpy(self._rings)
+            views, off = [], 0
+            for g, c_in, _, _, span, _, _ in layers:
+                views.append(flat[off:off + g * span * c_in].view(g, span, c_in))
+                off += g * span * c_in
+            ts.first_buffer = views[0][0]
+            ts.ring_buffers = views[1:]
+        self._ts = ts
+        self._n_feat = int(ts.head_weight.shape[1])
+        self._no_feats = np.zeros((0, self._n_feat))
+        self.chunk_networks = 16  # from this many samples per call, the networks run as convolutions
         for t_ in (ts.head_weight, ts.head_bias, ts.head_matrix):
             ints.append(size)
             params.append(t_.double().reshape(-1))
@@ -196,7 +218,7 @@ class CompiledStreaming:
         self._ints = np.asarray(ints, dtype=np.int64)
         self._cfg = np.asarray([ts.k_acc, ts.k_mag, ts.k_bias, ts.rest_tc, ts.rest_gyro, ts.rest_acc,
                                 ts.acc_reject, ts.gravity, ts.mag_min, ts.mag_max], dtype=np.float64)
-        self._state = np.zeros(ring)
+        self._state = np.zeros(_STATE_RING + 6 * ts.window)
         self._out1 = np.empty((1, 7))
         self._dt1 = np.zeros(1)
         self.reset(np.array([1.0, 0.0, 0.0, 0.0]))
@@ -212,9 +234,8 @@ class CompiledStreaming:
         s[:] = 0.0
         s[1:10] = so3.quat_to_matrix(q / q.norm()).reshape(9).numpy()
         s[22] = s[23] = -float(self._ints[3]) - 1.0  # no unsteady sample yet
-        if self._ring0 is not None:  # raw-sample ring: the mean normalises to the causal zero padding
-            off, span, mean = self._ring0
-            s[off:off + span * self.axes] = np.tile(mean, span)
+        self._ts.t = 0
+        self._ts._reset_rings()  # zeros; the raw-sample ring holds the input mean (= causal zero padding)
 
     def _check(self, xs: np.ndarray, dts: np.ndarray) -> None:
         if not np.isfinite(xs).all():
@@ -233,7 +254,7 @@ class CompiledStreaming:
             raise ValueError(f"sample: expected {self.axes} values, got {x.shape[1]}")
         self._dt1[0] = dt
         self._check(x, self._dt1)
-        _steps(x, self._dt1, self._params, self._cfg, self._ints, self._state, self._out1)
+        _steps(x, self._dt1, self._no_feats, self._params, self._cfg, self._ints, self._state, self._rings, self._out1)
         return self._out1[0, 0:4].copy(), self._out1[0, 4:7].copy()
 
     def step_chunk(self, samples, dt: Union[float, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
@@ -244,7 +265,12 @@ class CompiledStreaming:
         dts = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],)))
         self._check(xs, dts)
         out = np.empty((xs.shape[0], 7))
-        _steps(xs, dts, self._params, self._cfg, self._ints, self._state, out)
+        feats = self._no_feats
+        if xs.shape[0] >= self.chunk_networks and self._ts.groups > 0:
+            self._ts.t = int(self._state[0])
+            with torch.no_grad():
+                feats = self._ts._errors_chunk(torch.from_numpy(xs)).numpy()
+        _steps(xs, dts, feats, self._params, self._cfg, self._ints, self._state, self._rings, out)
         return out[:, 0:4], out[:, 4:7]
 
     def run(self, imu, dt, q0) -> Tuple[np.ndarray, np.ndarray]:

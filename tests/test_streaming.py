@@ -12,7 +12,7 @@ from tcn_ahrs.export import export_streaming
 pytest.importorskip("numba")
 from tcn_ahrs.streaming import CompiledStreaming  # noqa: E402
 
-from test_export_closed_loop import N, RATE, TOL, _angle, _eager, _imu, _model  # noqa: E402
+from test_export_closed_loop import N, RATE, STEP_CHUNK_TOL, TOL, _angle, _eager, _imu, _model  # noqa: E402
 
 
 @pytest.mark.parametrize("axes", [9, 6])
@@ -41,11 +41,17 @@ def test_steps_and_chunks_of_any_size_are_one_run():
     q_run, w_run = stream.run(imu, 1.0 / RATE, q0)
     stream.reset(q0)
     q_step = np.stack([stream.step(imu[k], 1.0 / RATE)[0] for k in range(N)])
+    # short chunks run the networks sample by sample too: the same compiled code to the last bit
+    stream.reset(q0)
+    cuts = list(range(0, N, 7)) + [N]
+    q_short = np.concatenate([stream.step_chunk(imu[a:b], 1.0 / RATE)[0] for a, b in zip(cuts[:-1], cuts[1:])])
+    assert np.array_equal(q_short, q_step)
+    # long chunks run them as convolutions (other float32 summation order), on the same state
     stream.reset(q0)
     q_chunk = np.concatenate([stream.step_chunk(imu[a:b], 1.0 / RATE)[0]
                               for a, b in ((0, 1), (1, 8), (8, 150), (150, 151), (151, N))])
-    # the same compiled code: equal to the last bit
-    assert np.array_equal(q_step, q_run) and np.array_equal(q_chunk, q_run)
+    for q in (q_step, q_chunk):
+        assert float(_angle(torch.from_numpy(q), torch.from_numpy(q_run)).max()) < STEP_CHUNK_TOL
 
 
 def test_bad_samples_raise_before_the_state_changes():
@@ -66,4 +72,4 @@ def test_bad_samples_raise_before_the_state_changes():
     with pytest.raises(ValueError, match="q0"):
         stream.reset([0.0, 0.0, 0.0, 0.0])
     q, _ = stream.step_chunk(imu[10:20], 1.0 / RATE)
-    assert np.array_equal(q, q_ref[10:20])
+    assert float(_angle(torch.from_numpy(q), torch.from_numpy(q_ref[10:20])).max()) < STEP_CHUNK_TOL

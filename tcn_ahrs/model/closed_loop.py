@@ -213,17 +213,23 @@ class ClosedLoopFilter(nn.Module):
 
     @torch.jit.unused
     def _scan(self, *args: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """The loop (arguments of :func:`closed_loop_scan`): compiled by numba
-        (:mod:`~tcn_ahrs.model.closed_loop_step`, ~1000x faster) when nothing needs a gradient and
-        everything is float64 on the CPU (``backend="auto"``, evaluation), else the tensor scan
-        that training backpropagates through. ``backend``: "auto" | "torch" | "numba"."""
-        compiled_ok = (closed_loop_step.AVAILABLE and all(a.device.type == "cpu" and a.dtype == torch.float64
-                                                          for a in args)
-                       and not (torch.is_grad_enabled() and any(a.requires_grad for a in args)))
-        if self.backend == "numba" and not compiled_ok:
-            raise ValueError("ClosedLoopFilter(backend='numba'): needs numba and float64 CPU tensors without "
-                             "gradients (use backend='auto' or 'torch')")
-        if self.backend != "torch" and compiled_ok:
+        """The loop (arguments of :func:`closed_loop_scan`). ``backend="auto"`` on the CPU with
+        numba: evaluation (float64, no gradient) runs the compiled loop
+        (:mod:`~tcn_ahrs.model.closed_loop_step`, ~1000x faster than the tensor scan); training
+        (a gradient needed) runs :class:`~tcn_ahrs.model.closed_loop_step.ScanFunction`, the
+        compiled loop with its compiled reverse pass. Otherwise (CUDA, no numba, or
+        ``backend="torch"``) the tensor scan :func:`closed_loop_scan` under autograd.
+        ``backend``: "auto" | "torch" | "numba"."""
+        cpu = closed_loop_step.AVAILABLE and all(a.device.type == "cpu" for a in args)
+        grad = torch.is_grad_enabled() and any(a.requires_grad for a in args)
+        if self.backend == "numba" and not cpu:
+            raise ValueError("ClosedLoopFilter(backend='numba'): needs numba and CPU tensors "
+                             "(use backend='auto' or 'torch')")
+        if self.backend == "torch" or not cpu:
+            return _scan(*args)
+        if grad:  # training: compiled forward and reverse pass (float64 inside)
+            return closed_loop_step.ScanFunction.apply(*args)
+        if all(a.dtype == torch.float64 for a in args):
             return closed_loop_step.scan_numba(*args)
         return _scan(*args)
 
