@@ -20,7 +20,12 @@ the string returned by the module's ``metadata()`` method):
 * Streaming module: ``m.reset(q0)``; then per sample ``quat, omega = m.step(sample (C,), dt)``
   -> (4,), (3,) float64; the same numbers as the batch module, sample by sample (the
   ``dt`` of the first call after ``reset`` is not used). ``m.run(imu, dt, q0)`` = reset +
-  step over a whole sequence in TorchScript. State: one ring buffer per convolution layer
+  step over a whole sequence in TorchScript. Closed-loop modules also have
+  ``m.step_chunk(samples (k, C), dt)`` -> (k, 4), (k, 3): k samples per call on the same state,
+  the networks as convolutions over the chunk (equal to k steps to float32 round-off).
+  The fastest way to stream from Python is :class:`tcn_ahrs.streaming.CompiledStreaming`
+  (numba; same contract, numpy in and out), measured beside this module by
+  ``python scripts/benchmark.py speed``. State: one ring buffer per convolution layer
   (``dilation * (kernel - 1)`` past inputs, zeros after ``reset`` = the batch model's causal
   zero padding), the ECF's pre-integrated attitude(s) C̃ (Eq. 25) and the integrated attitude.
 * Input checks (every module): wrong shapes, a NaN/inf reading, or a time step after the first
@@ -111,6 +116,7 @@ def build_metadata(model: nn.Module, mode: str, meta: Optional[Mapping[str, Any]
         "api": ({"forward": "quat (N,4), omega (N,3) = m(imu (N,C), dt float|(N,), q0 (4,))"} if mode == "batch" else
                 {"reset": "m.reset(q0 (4,))",
                  "step": "quat (4,), omega (3,) = m.step(sample (C,), dt float)  (dt unused on the first call)",
+                 "step_chunk": "quat (k,4), omega (k,3) = m.step_chunk(samples (k,C), dt float|(k,))  (closed loop)",
                  "run": "quat (N,4), omega (N,3) = m.run(imu (N,C), dt float|(N,), q0 (4,))"}),
         "checkpoint": None,
         "checkpoint_sha256": None,
