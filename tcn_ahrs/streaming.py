@@ -154,6 +154,19 @@ if AVAILABLE:
             out[k, 4], out[k, 5], out[k, 6] = v[0] - s[10] + c0, v[1] - s[11] + c1, v[2] - s[12] + c2
 
 
+_SCRIPTED = {}
+
+
+def _ring_convolutions():
+    """:func:`tcn_ahrs.export.open_loop.ring_convolutions`, scripted once (TorchScript runs its
+    ~40 small tensor ops ~5x faster than eager dispatch)."""
+    if "ring" not in _SCRIPTED:
+        from .export.open_loop import ring_convolutions
+
+        _SCRIPTED["ring"] = torch.jit.script(ring_convolutions)
+    return _SCRIPTED["ring"]
+
+
 class CompiledStreaming:
     """The learned closed loop of ``model`` (a :class:`~tcn_ahrs.model.ahrs.LearnedAHRS` with
     ``loop=closed``), one sample or one chunk per call, compiled by numba.
@@ -206,10 +219,15 @@ class CompiledStreaming:
                 off += g * span * c_in
             ts.first_buffer = views[0][0]
             ts.ring_buffers = views[1:]
+        self._views = views if ts.groups > 0 else []
+        self._dilations = [int(d) for _, _, _, d, _, _, _ in layers]
         self._ts = ts
         self._n_feat = int(ts.head_weight.shape[1])
         self._no_feats = np.zeros((0, self._n_feat))
-        self.chunk_networks = 16  # from this many samples per call, the networks run as convolutions
+        # from this many samples per call the networks run as convolutions over the chunk
+        # (measured, broad9, 1 thread: 11 µs/sample at 100 per call — per-call overhead of
+        # ~40 small ops — and 4.3 µs at 1000, against ~9 µs sample by sample in the compiled loop)
+        self.chunk_networks = 512
         for t_ in (ts.head_weight, ts.head_bias, ts.head_matrix):
             ints.append(size)
             params.append(t_.double().reshape(-1))
@@ -267,9 +285,10 @@ class CompiledStreaming:
         out = np.empty((xs.shape[0], 7))
         feats = self._no_feats
         if xs.shape[0] >= self.chunk_networks and self._ts.groups > 0:
-            self._ts.t = int(self._state[0])
             with torch.no_grad():
-                feats = self._ts._errors_chunk(torch.from_numpy(xs)).numpy()
+                feats = _ring_convolutions()(torch.from_numpy(xs), int(self._state[0]), self._views,
+                                             self._ts.chunk_weights, self._ts.chunk_biases, self._dilations,
+                                             int(self._ts.groups)).numpy()
         _steps(xs, dts, feats, self._params, self._cfg, self._ints, self._state, self._rings, out)
         return out[:, 0:4], out[:, 4:7]
 

@@ -47,6 +47,7 @@ def test_steps_and_chunks_of_any_size_are_one_run():
     q_short = np.concatenate([stream.step_chunk(imu[a:b], 1.0 / RATE)[0] for a, b in zip(cuts[:-1], cuts[1:])])
     assert np.array_equal(q_short, q_step)
     # long chunks run them as convolutions (other float32 summation order), on the same state
+    stream.chunk_networks = 16
     stream.reset(q0)
     q_chunk = np.concatenate([stream.step_chunk(imu[a:b], 1.0 / RATE)[0]
                               for a, b in ((0, 1), (1, 8), (8, 150), (150, 151), (151, N))])

@@ -31,7 +31,10 @@ def to_markdown(res: Dict[str, Any]) -> str:
     tr = res.get("train")
     if tr:
         e = tr["epoch"]
-        out += ["## Training step (TCN + ECF + loss, forward + backward + AdamW)", "",
+        what = ("the shipped recipe (closed loop, truncated backpropagation through one chunk after the networks' "
+                "context, attitude loss)" if tr.get("model", "closed") == "closed"
+                else "the paper's open-loop model (TCN + ECF + increment loss)")
+        out += ["## Training step (forward + backward + AdamW)", "", f"Model: {what}.",
                 f"Shape batch {tr['shape']['batch_size']} x window {tr['shape']['window']} x {tr['shape']['axes']} axes, "
                 f"{tr['threads']} torch threads. Epoch = {e['windows']} windows (stride) = {e['steps']} steps; "
                 f"BROAD training split {e['samples']} samples ({e['source']}). Schedule = {tr['epochs']} epochs "

@@ -213,20 +213,9 @@ class ClosedLoopStreaming(StreamingAHRS):
     def step(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:
         """sample (C,) raw IMU, dt [s] since the previous sample (unused on the first call after
         reset) -> (quat (4,) w,x,y,z nav_from_body ENU, omega (3,) rad/s), float64."""
-        if sample.dim() != 1 or sample.size(0) != self.axes:
-            raise ValueError("sample: expected shape (" + str(self.axes) + ",), got " + str(list(sample.shape)))
-        dtf = float(dt.item()) if isinstance(dt, Tensor) else float(dt)
-        # checked before any state changes: after an error the module goes on as if the sample
-        # had not been given (or reset() starts afresh)
-        self._check_finite(sample, "sample")
-        self._check_step(dtf, self.t == 0)
+        dtf = self._begin_step(sample, dt)
         x = sample.to(torch.float64)
-        if self.groups > 0:
-            head = torch.addmv(torch.addmv(self.head_bias, self.head_weight, self._errors_step(sample)),
-                               self.head_matrix, x, beta=-1.0)
-        else:
-            head = torch.addmv(self.head_bias, self.head_matrix, x, beta=-1.0)
-        v: List[float] = head.tolist()
+        v: List[float] = self._head_step(sample, x, self.head_bias, self.head_weight, self.head_matrix).tolist()
         raw: List[float] = x.tolist()
         out = self._f64_tensor(self._filter(v, raw, dtf))
         return out[0:4], out[4:7]

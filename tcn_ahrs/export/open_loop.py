@@ -11,10 +11,33 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .fused import _hamilton_table, _rows_up_east, acc_error_rows, mag_error_rows, quat_integrate
+from ..model.closed_loop_step import float64_tensor
 from .inputs import ExportError, _Inputs
 
 NET_DTYPES = (torch.float32, torch.float64, torch.bfloat16)
 _SQRT_HALF = math.sqrt(0.5)
+
+
+def ring_convolutions(samples: Tensor, t0: int, rings: List[Tensor], weights: List[Tensor], biases: List[Tensor],
+                      dilations: List[int], groups: int) -> Tensor:
+    """The stacked networks over k new samples (k, C) at time t0 from their ring buffers: per
+    layer one convolution over the buffer's history (in time order) followed by the chunk's
+    inputs; the buffers (layer 0: (1, span, C) raw samples, then (G, span, C_in)) are updated in
+    place as if the samples had been stepped one by one. weights (G*C_out, C_in, k) (layer 0:
+    (G*C_1, C, k), one group), GELU as ``u (1 + erf(u))`` on scaled pre-activations (see
+    :meth:`StreamingAHRS._gelu_scaled`). Returns the last features (k, G*C_last) float64."""
+    n = samples.size(0)
+    h = samples.to(rings[0].dtype).unsqueeze(0)  # (1, n, C) time-major
+    for i in range(len(rings)):
+        buf = rings[i]
+        span = buf.size(1)
+        order = torch.remainder(torch.arange(t0 - span + 1, t0, dtype=torch.long), span)
+        seq = torch.cat([buf.index_select(1, order), h], 1)  # (G_i, span - 1 + n, C_in)
+        buf.index_copy_(1, torch.remainder(torch.arange(t0 + n - span, t0 + n, dtype=torch.long), span), seq[:, -span:])
+        u = F.conv1d(seq.transpose(1, 2).reshape(1, -1, seq.size(1)), weights[i], biases[i], dilation=dilations[i],
+                     groups=buf.size(0))
+        h = torch.addcmul(u, u, torch.erf(u)).view(groups, -1, n).transpose(1, 2)
+    return h.transpose(0, 1).reshape(n, -1).to(torch.float64)
 
 
 class BatchAHRS(_Inputs):
@@ -347,60 +370,44 @@ class StreamingAHRS(BatchAHRS):
         return h.view(-1).to(torch.float64)
 
     def _errors_chunk(self, samples: Tensor) -> Tensor:
-        """:meth:`_errors_step` for k samples (k, C) at once: (k, G*C_last) float64. Each layer is
-        one convolution over its ring buffer's history (in time order) followed by the chunk's
-        inputs, and the ring buffers end as if the samples had been stepped one by one."""
-        n = samples.size(0)
-        g = self.groups
-        t0 = self.t
-        x = samples.to(self.first_buffer.dtype)
-        span = self.first_span
-        order = torch.remainder(torch.arange(t0 - span + 1, t0, dtype=torch.long), span)
-        seq = torch.cat([self.first_buffer.index_select(0, order), x], 0)  # (span - 1 + n, C)
-        self.first_buffer.index_copy_(0, torch.remainder(torch.arange(t0 + n - span, t0 + n, dtype=torch.long), span),
-                                      seq[-span:] if seq.size(0) >= span else seq)
-        u = F.conv1d(seq.t().unsqueeze(0), self.chunk_weights[0], self.chunk_biases[0], dilation=self.first_dilation)
-        h = self._gelu_scaled(u).view(g, -1, n).transpose(1, 2)  # (G, n, C1) time-major
-        for i in range(len(self.ring_buffers)):
-            span = self.spans[i]
-            buf = self.ring_buffers[i]
-            order = torch.remainder(torch.arange(t0 - span + 1, t0, dtype=torch.long), span)
-            seq = torch.cat([buf.index_select(1, order), h], 1)  # (G, span - 1 + n, C_in)
-            buf.index_copy_(1, torch.remainder(torch.arange(t0 + n - span, t0 + n, dtype=torch.long), span),
-                            seq[:, -span:])
-            u = F.conv1d(seq.transpose(1, 2).reshape(1, -1, seq.size(1)), self.chunk_weights[i + 1],
-                         self.chunk_biases[i + 1], dilation=self.hidden_dilations[i], groups=g)
-            h = self._gelu_scaled(u).view(g, -1, n).transpose(1, 2)
-        return h.transpose(0, 1).reshape(n, -1).to(torch.float64)
+        """:meth:`_errors_step` for k samples (k, C) at once: (k, G*C_last) float64
+        (:func:`ring_convolutions` over this module's ring buffers, which end as if the samples
+        had been stepped one by one)."""
+        rings = [self.first_buffer.unsqueeze(0)] + self.ring_buffers
+        return ring_convolutions(samples, self.t, rings, self.chunk_weights, self.chunk_biases,
+                                 [self.first_dilation] + self.hidden_dilations, self.groups)
 
     @staticmethod
     def _f64_tensor(vals: List[float]) -> Tensor:
         """List of floats -> float64 tensor to ~1e-15 relative. (TorchScript's
         ``torch.tensor(List[float], dtype=float64)`` rounds through float32; the float32
         residual adds back what it lost, leaving a 2^-48 relative error.)"""
-        hi = torch.tensor(vals, dtype=torch.float64)
-        hl: List[float] = hi.tolist()
-        return hi + torch.tensor([v - h for v, h in zip(vals, hl)], dtype=torch.float64)
+        return float64_tensor(vals)
+
+    def _begin_step(self, sample: Tensor, dt: Union[float, Tensor]) -> float:
+        """Checks one sample (C,) and its dt *before any state changes* (after an error the module
+        goes on as if the sample had not been given, or reset() starts afresh) -> dt as a float."""
+        if sample.dim() != 1 or sample.size(0) != self.axes:
+            raise ValueError("sample: expected shape (" + str(self.axes) + ",), got " + str(list(sample.shape)))
+        dtf = float(dt.item()) if isinstance(dt, Tensor) else float(dt)
+        self._check_finite(sample, "sample")
+        self._check_step(dtf, self.t == 0)
+        return dtf
+
+    def _head_step(self, sample: Tensor, x: Tensor, bias: Tensor, weight: Tensor, matrix: Tensor) -> Tensor:
+        """``M y − (W h + b)`` for the newest sample (advances the ring buffers): the calibration
+        (Eqs. 12-14) as two fused multiply-adds in float64; y = x the raw sample in float64."""
+        if self.groups > 0:
+            return torch.addmv(torch.addmv(bias, weight, self._errors_step(sample)), matrix, x, beta=-1.0)
+        return torch.addmv(bias, matrix, x, beta=-1.0)
 
     @torch.jit.export
     def step(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:
         """sample (C,) raw IMU, dt [s] since the previous sample (unused on the first call after
         reset) -> (quat (4,) w,x,y,z nav_from_body ENU, omega (3,) rad/s), float64."""
-        if sample.dim() != 1 or sample.size(0) != self.axes:
-            raise ValueError("sample: expected shape (" + str(self.axes) + ",), got " + str(list(sample.shape)))
-        dtf = float(dt.item()) if isinstance(dt, Tensor) else float(dt)
-        # checked before any state changes: after an error the module goes on as if the sample
-        # had not been given (or reset() starts afresh)
-        self._check_finite(sample, "sample")
-        self._check_step(dtf, self.t == 0)
+        dtf = self._begin_step(sample, dt)
         x = sample.to(torch.float64)
-        if self.groups > 0:
-            # M y − (W_o h + b_o) (Eqs. 12-14): two fused multiply-adds in float64
-            cal_t = torch.addmv(torch.addmv(self.out_bias, self.out_weight_f64, self._errors_step(sample)),
-                                self.calib_matrix, x, beta=-1.0)
-        else:
-            cal_t = torch.addmv(self.out_bias, self.calib_matrix, x, beta=-1.0)
-        cal: List[float] = cal_t.tolist()
+        cal: List[float] = self._head_step(sample, x, self.out_bias, self.out_weight_f64, self.calib_matrix).tolist()
         raw: List[float] = x.tolist()
         gx, gy, gz = cal[0], cal[1], cal[2]
         ox, oy, oz = gx, gy, gz
