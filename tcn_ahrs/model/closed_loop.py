@@ -31,11 +31,12 @@ Per sample k (``dt_k`` the step before k; sample 0 is the initial state)::
   logarithms (always positive).
 
 Frames: body vectors, ``nav_from_body`` quaternions (w,x,y,z), ENU, specific force up.
-The loop is written once (:func:`closed_loop_scan`, TorchScript) and is what training (through
-autograd), :class:`~tcn_ahrs.model.ahrs.LearnedAHRS`, evaluation and the TorchScript export run.
-It keeps the attitude as a rotation matrix: ``C exp(φ^)`` is ``C + a (C φ^) + b (C φ^)φ^``
-whose rows are two cross products (``(Cφ^)_i = c_i × φ``), ~3x fewer tensor operations per
-sample than the quaternion product — the loop is interpreter-bound, so that is its speed.
+The loop on tensors (:func:`closed_loop_scan`, TorchScript) is the reference and what autograd
+runs on CUDA; the same update on scalars (:mod:`tcn_ahrs.model.closed_loop_step`) is what
+evaluation (numba), CPU training (numba, with its reverse pass) and the exports (TorchScript)
+run, tested equal to 1e-12 (:meth:`ClosedLoopFilter._scan` picks). It keeps the attitude as a
+rotation matrix: ``C exp(φ^)`` is ``C + a (C φ^) + b (C φ^)φ^`` whose rows are two cross
+products (``(Cφ^)_i = c_i × φ``), ~3x fewer operations per sample than the quaternion product.
 """
 from __future__ import annotations
 
