@@ -22,7 +22,7 @@ DEFAULTS: Dict[str, Any] = {
         "stride": 500,             # window-start spacing; epoch = all starts (tcn_ahrs.data.window_starts)
         "epochs": 12,              # the shipped CPU schedule (checkpoints/broad9.md)
         "rate": 285.71,            # BROAD sampling rate, Hz (synthetic data)
-        "variants_cpu": ["eager", "threads1", "bf16", "compile"],
+        "variants_cpu": ["eager", "tensor_scan", "threads1", "bf16", "compile"],
         # model=paper also: loss_fp32 (CPU); fp32, tf32, cuda_graphs (CUDA)
         "variants_cuda": ["eager", "bf16", "compile"],
         "warmup": 1,               # untimed steps per variant (compile: + its compile call)

@@ -169,7 +169,7 @@ def make_train_step(variant: str, p: Dict[str, Any], device: str, seed: int = 0)
     return step, info
 
 
-CLOSED_VARIANTS = ("eager", "threads1", "bf16", "compile")
+CLOSED_VARIANTS = ("eager", "tensor_scan", "threads1", "bf16", "compile")
 
 
 def _closed_loop_step(variant: str, p: Dict[str, Any], device: str, seed: int, module, model, store, opt):
@@ -177,8 +177,11 @@ def _closed_loop_step(variant: str, p: Dict[str, Any], device: str, seed: int, m
     broad9_cl): B streams x one chunk of ``window`` samples after ``receptive_field - 1`` samples
     of context; the calibration networks over all of it, the closed loop (the tensor scan, float32
     as in training) over the chunk, :func:`~tcn_ahrs.losses.attitude_loss`, backward, AdamW.
-    Variants: ``eager`` (the recipe), ``threads1`` (one torch thread), ``bf16`` (the networks under
-    bfloat16 autocast; filter and loss in float32), ``compile`` (torch.compile of the networks)."""
+    Variants: ``eager`` (the recipe: on the CPU the loop and its reverse pass compiled,
+    :class:`~tcn_ahrs.model.closed_loop_step.ScanFunction`), ``tensor_scan`` (the loop as tensor
+    ops under autograd, as before: ``backend="torch"``), ``threads1`` (one torch thread), ``bf16``
+    (the networks under bfloat16 autocast; filter and loss in float32), ``compile`` (torch.compile
+    of the networks)."""
     from ..data import augment
     from ..losses import attitude_loss
 
@@ -191,6 +194,8 @@ def _closed_loop_step(variant: str, p: Dict[str, Any], device: str, seed: int, m
     gen = torch.Generator(device="cpu").manual_seed(seed)
     arange = torch.arange(L + ctx, device=device)
     calibrate = torch.compile(model.calibration) if variant == "compile" else model.calibration
+    if variant == "tensor_scan":
+        model.closed.backend = "torch"
 
     def body():
         starts = torch.randint(0, n_store - L - ctx + 1, (B,), generator=gen).to(device)
