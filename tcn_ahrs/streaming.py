@@ -31,15 +31,16 @@ from typing import Any, Mapping, Optional, Tuple, Union
 import numpy as np
 import torch
 
-from .model import closed_loop_step as cls_
+from .model.closed_loop_compiled import AVAILABLE
 
-try:
+if AVAILABLE:
     import numba
 
-    AVAILABLE = True
-except ImportError:  # pragma: no cover
-    numba = None
-    AVAILABLE = False
+    from .model.closed_loop_compiled import east_reference_nb as _east_ref
+    from .model.closed_loop_compiled import loop_inputs_nb as _loop_inputs
+    from .model.closed_loop_compiled import matrix_to_quat_nb as _to_quat
+    from .model.closed_loop_compiled import rest_update_nb as _rest_update
+    from .model.closed_loop_compiled import update_nb as _update
 
 # ints: header, then 8 entries per convolution layer (weights (groups, c_out, k c_in), taps oldest first), then the head's 3 offsets
 _HEADER = 8          # C, K, layers, window, use_acc, use_mag, H (features), rows of the head (C + 2)
@@ -48,12 +49,6 @@ _PER_LAYER = 8       # groups, c_in, c_out (per group), dilation, span, weight o
 _STATE_RING = 24
 
 if AVAILABLE:
-    _update = numba.njit(cache=True, inline="always")(cls_.closed_loop_update)
-    _rest_update = numba.njit(cache=True, inline="always")(cls_.rest_update)
-    _loop_inputs = numba.njit(cache=True, inline="always")(cls_.loop_inputs)
-    _east_ref = numba.njit(cache=True, inline="always")(cls_.east_reference_scalar)
-    _to_quat = numba.njit(cache=True, inline="always")(cls_.matrix_to_quat_scalar)
-
     @numba.njit(cache=True, fastmath=True, error_model="numpy")
     def _steps(xs, dts, feats, params, cfg, ints, state, rings, out):  # pragma: no cover - compiled
         """Samples xs (k, C) with steps dts (k,) through the networks and the filter; writes
@@ -158,10 +153,10 @@ _SCRIPTED = {}
 
 
 def _ring_convolutions():
-    """:func:`tcn_ahrs.export.open_loop.ring_convolutions`, scripted once (TorchScript runs its
+    """:func:`tcn_ahrs.export.fused.ring_convolutions`, scripted once (TorchScript runs its
     ~40 small tensor ops ~5x faster than eager dispatch)."""
     if "ring" not in _SCRIPTED:
-        from .export.open_loop import ring_convolutions
+        from .export.fused import ring_convolutions
 
         _SCRIPTED["ring"] = torch.jit.script(ring_convolutions)
     return _SCRIPTED["ring"]

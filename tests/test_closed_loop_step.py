@@ -9,6 +9,7 @@ from tcn_ahrs.model import closed_loop_step as step
 from tcn_ahrs.model.closed_loop import _scan, closed_loop_scan
 
 pytest.importorskip("numba")
+from tcn_ahrs.model import closed_loop_compiled as compiled  # noqa: E402
 
 
 def _inputs(b=3, n=200, seed=0, dtype=torch.float64):
@@ -31,7 +32,7 @@ def test_numba_and_torchscript_loops_equal_the_tensor_scan():
     args = _inputs()
     ref = _scan(*args)
     scalar = torch.jit.script(step.scan_scalar)
-    for got in (step.scan_numba(*args), scalar(*args), step.ScanFunction.apply(*args)):
+    for got in (compiled.scan_numba(*args), scalar(*args), compiled.ScanFunction.apply(*args)):
         for a, b in zip(ref, got):
             assert float((a - b).abs().max()) < 1e-12
 
@@ -46,7 +47,7 @@ def test_compiled_reverse_pass_equals_autograd_through_the_tensor_scan():
         loss = sum((w * o).sum() for w, o in zip(weights, outs))
         return torch.autograd.grad(loss, args)
 
-    for a, b in zip(grads(closed_loop_scan), grads(step.ScanFunction.apply)):
+    for a, b in zip(grads(closed_loop_scan), grads(compiled.ScanFunction.apply)):
         scale = float(a.abs().max()) + 1e-12
         assert float((a - b).abs().max()) / scale < 1e-9
 

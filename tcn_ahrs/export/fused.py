@@ -5,6 +5,7 @@ convolutions (:func:`fuse_model`) and the float64 quaternion scans of the open-l
 from typing import Any, Dict, List, Tuple
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import so3
@@ -229,3 +230,26 @@ def acc_error_rows(acc: Tensor, up: Tensor) -> Tensor:
 def mag_error_rows(mag: Tensor, acc_raw: Tensor, east: Tensor) -> Tensor:
     """Eq. 24 (as :func:`tcn_ahrs.model.ecf.mag_error`): ``unit(b̂ × g') × (C̃^T e_east)``."""
     return torch.linalg.cross(_unit_rows(torch.linalg.cross(mag, acc_raw, dim=1)), east, dim=1)
+
+
+# ============================================================ streaming networks over a chunk
+def ring_convolutions(samples: Tensor, t0: int, rings: List[Tensor], weights: List[Tensor], biases: List[Tensor],
+                      dilations: List[int], groups: int) -> Tensor:
+    """The stacked networks over k new samples (k, C) at time t0 from their ring buffers: per
+    layer one convolution over the buffer's history (in time order) followed by the chunk's
+    inputs; the buffers (layer 0: (1, span, C) raw samples, then (G, span, C_in)) are updated in
+    place as if the samples had been stepped one by one. weights (G*C_out, C_in, k) (layer 0:
+    (G*C_1, C, k), one group), GELU as ``u (1 + erf(u))`` on scaled pre-activations (see
+    :meth:`StreamingAHRS._gelu_scaled`). Returns the last features (k, G*C_last) float64."""
+    n = samples.size(0)
+    h = samples.to(rings[0].dtype).unsqueeze(0)  # (1, n, C) time-major
+    for i in range(len(rings)):
+        buf = rings[i]
+        span = buf.size(1)
+        order = torch.remainder(torch.arange(t0 - span + 1, t0, dtype=torch.long), span)
+        seq = torch.cat([buf.index_select(1, order), h], 1)  # (G_i, span - 1 + n, C_in)
+        buf.index_copy_(1, torch.remainder(torch.arange(t0 + n - span, t0 + n, dtype=torch.long), span), seq[:, -span:])
+        u = F.conv1d(seq.transpose(1, 2).reshape(1, -1, seq.size(1)), weights[i], biases[i], dilation=dilations[i],
+                     groups=buf.size(0))
+        h = torch.addcmul(u, u, torch.erf(u)).view(groups, -1, n).transpose(1, 2)
+    return h.transpose(0, 1).reshape(n, -1).to(torch.float64)

@@ -10,34 +10,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .fused import _hamilton_table, _rows_up_east, acc_error_rows, mag_error_rows, quat_integrate
+from .fused import _hamilton_table, _rows_up_east, acc_error_rows, mag_error_rows, quat_integrate, ring_convolutions
 from ..model.closed_loop_step import float64_tensor
 from .inputs import ExportError, _Inputs
 
 NET_DTYPES = (torch.float32, torch.float64, torch.bfloat16)
 _SQRT_HALF = math.sqrt(0.5)
-
-
-def ring_convolutions(samples: Tensor, t0: int, rings: List[Tensor], weights: List[Tensor], biases: List[Tensor],
-                      dilations: List[int], groups: int) -> Tensor:
-    """The stacked networks over k new samples (k, C) at time t0 from their ring buffers: per
-    layer one convolution over the buffer's history (in time order) followed by the chunk's
-    inputs; the buffers (layer 0: (1, span, C) raw samples, then (G, span, C_in)) are updated in
-    place as if the samples had been stepped one by one. weights (G*C_out, C_in, k) (layer 0:
-    (G*C_1, C, k), one group), GELU as ``u (1 + erf(u))`` on scaled pre-activations (see
-    :meth:`StreamingAHRS._gelu_scaled`). Returns the last features (k, G*C_last) float64."""
-    n = samples.size(0)
-    h = samples.to(rings[0].dtype).unsqueeze(0)  # (1, n, C) time-major
-    for i in range(len(rings)):
-        buf = rings[i]
-        span = buf.size(1)
-        order = torch.remainder(torch.arange(t0 - span + 1, t0, dtype=torch.long), span)
-        seq = torch.cat([buf.index_select(1, order), h], 1)  # (G_i, span - 1 + n, C_in)
-        buf.index_copy_(1, torch.remainder(torch.arange(t0 + n - span, t0 + n, dtype=torch.long), span), seq[:, -span:])
-        u = F.conv1d(seq.transpose(1, 2).reshape(1, -1, seq.size(1)), weights[i], biases[i], dilation=dilations[i],
-                     groups=buf.size(0))
-        h = torch.addcmul(u, u, torch.erf(u)).view(groups, -1, n).transpose(1, 2)
-    return h.transpose(0, 1).reshape(n, -1).to(torch.float64)
 
 
 class BatchAHRS(_Inputs):

@@ -79,7 +79,10 @@ def ecf_loop(a_hat, east_b, w_acc, w_mag, gyro, dt, r0, use_mag):
     return out
 
 
-_matrix_to_quat = numba.njit(cache=True)(matrix_to_quat_scalar) if AVAILABLE else matrix_to_quat_scalar
+if AVAILABLE:
+    from ..model.closed_loop_compiled import matrix_to_quat_nb as _matrix_to_quat
+else:  # pragma: no cover
+    _matrix_to_quat = matrix_to_quat_scalar
 
 
 @numba.njit(cache=True) if AVAILABLE else (lambda f: f)

@@ -49,7 +49,7 @@ from torch import Tensor, nn
 
 from ..conventions import GRAVITY
 from ..filters.common import field_gates
-from . import closed_loop_step
+from . import closed_loop_compiled
 from .closed_loop_step import scan_scalar
 from .ecf import _unit
 
@@ -217,11 +217,11 @@ class ClosedLoopFilter(nn.Module):
         """The loop (arguments of :func:`closed_loop_scan`). ``backend="auto"`` on the CPU with
         numba: evaluation (float64, no gradient) runs the compiled loop
         (:mod:`~tcn_ahrs.model.closed_loop_step`, ~1000x faster than the tensor scan); training
-        (a gradient needed) runs :class:`~tcn_ahrs.model.closed_loop_step.ScanFunction`, the
+        (a gradient needed) runs :class:`~tcn_ahrs.model.closed_loop_compiled.ScanFunction`, the
         compiled loop with its compiled reverse pass. Otherwise (CUDA, no numba, or
         ``backend="torch"``) the tensor scan :func:`closed_loop_scan` under autograd.
         ``backend``: "auto" | "torch" | "numba"."""
-        cpu = closed_loop_step.AVAILABLE and all(a.device.type == "cpu" for a in args)
+        cpu = closed_loop_compiled.AVAILABLE and all(a.device.type == "cpu" for a in args)
         grad = torch.is_grad_enabled() and any(a.requires_grad for a in args)
         if self.backend == "numba" and not cpu:
             raise ValueError("ClosedLoopFilter(backend='numba'): needs numba and CPU tensors "
@@ -229,9 +229,9 @@ class ClosedLoopFilter(nn.Module):
         if self.backend == "torch" or not cpu:
             return _scan(*args)
         if grad:  # training: compiled forward and reverse pass (float64 inside)
-            return closed_loop_step.ScanFunction.apply(*args)
+            return closed_loop_compiled.ScanFunction.apply(*args)
         if all(a.dtype == torch.float64 for a in args):
-            return closed_loop_step.scan_numba(*args)
+            return closed_loop_compiled.scan_numba(*args)
         return _scan(*args)
 
     @torch.jit.unused
