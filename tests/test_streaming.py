@@ -74,3 +74,12 @@ def test_bad_samples_raise_before_the_state_changes():
         stream.reset([0.0, 0.0, 0.0, 0.0])
     q, _ = stream.step_chunk(imu[10:20], 1.0 / RATE)
     assert float(_angle(torch.from_numpy(q), torch.from_numpy(q_ref[10:20])).max()) < STEP_CHUNK_TOL
+
+
+def test_rational_erf_is_erf_to_float32_precision():
+    import math
+
+    from tcn_ahrs.streaming import erf_rational
+
+    xs = np.linspace(-6.0, 6.0, 24001)
+    assert max(abs(erf_rational(float(x)) - math.erf(float(x))) for x in xs) < 1e-7
