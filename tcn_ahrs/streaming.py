@@ -74,75 +74,83 @@ if AVAILABLE:
     _erf = numba.njit(cache=True, inline="always")(erf_rational)
 
     @numba.njit(cache=True, fastmath=True, error_model="numpy")
-    def _steps(xs, dts, feats, params, wts, cfg, ints, state, rings, out):  # pragma: no cover - compiled
-        """Samples xs (k, C) with steps dts (k,) through the networks and the filter; writes
-        [quat (4), omega (3)] per sample into out (k, 7) and advances state and rings. feats
-        (k, H): the networks' last features already computed for these samples (then the
-        networks are skipped), or an empty (0, H) array."""
-        c, kk, nl, w = ints[0], ints[1], ints[2], ints[3]
-        use_acc, use_mag, n_feat, n_head = ints[4] != 0, ints[5] != 0, ints[6], ints[7]
+    def _networks(x, t, feats_k, params, wts, ints, rings, h_in, h_out, tap, pre, v):  # pragma: no cover
+        """One sample x (C,) at time t through the networks (ring buffers (groups, span, c_in),
+        float32 as the exported module's; the newest input written at row t mod span) — or its
+        features feats_k (H,) when given (non-empty) — and the head into v: [M y − (W h + b) ;
+        −trust logits]. fastmath (reassociation, so the dot products vectorise) is confined to
+        this function; the filter code stays exact."""
+        c, kk, nl, n_feat, n_head = ints[0], ints[1], ints[2], ints[6], ints[7]
         hw, hb, hm = ints[_HEADER + _PER_LAYER * nl], ints[_HEADER + _PER_LAYER * nl + 1], ints[_HEADER + _PER_LAYER * nl + 2]
-        width = 0
+        n_in = c
+        for i in range(c):
+            h_in[i] = x[i]
+        nl_run = nl
+        if feats_k.shape[0] > 0:
+            for i in range(n_feat):
+                h_in[i] = feats_k[i]
+            nl_run = 0
+        for li in range(nl_run):
+            base = _HEADER + _PER_LAYER * li
+            g, cin, cout, d, span = ints[base], ints[base + 1], ints[base + 2], ints[base + 3], ints[base + 4]
+            wo, bo, ro = ints[base + 5], ints[base + 6], ints[base + 7]
+            p = t % span
+            for gr in range(g):
+                for i in range(cin):
+                    rings[ro + (gr * span + p) * cin + i] = h_in[gr * cin + i]
+            n_tap = kk * cin
+            for gr in range(g):
+                for j in range(kk):  # taps oldest first: t - (K - 1 - j) d
+                    rb = ro + (gr * span + (t - (kk - 1 - j) * d) % span) * cin
+                    for i in range(cin):
+                        tap[j * cin + i] = rings[rb + i]
+                for o in range(cout):  # one float32 dot product over the K c_in taps per output
+                    # (a slice: indices from 0 need no negative-index wrap-around, so the
+                    # loop vectorises; wts[offset + i] runs ~5x slower)
+                    wv = wts[wo + (gr * cout + o) * n_tap:wo + (gr * cout + o + 1) * n_tap]
+                    u = wts[bo + gr * cout + o]
+                    for i in range(n_tap):
+                        u += wv[i] * tap[i]
+                    pre[o] = u
+                for o in range(cout):  # GELU, sqrt(2)-scaled: u (1 + erf(u)), vectorised
+                    u = float(pre[o])
+                    h_out[gr * cout + o] = u * (1.0 + _erf(u))
+            n_in = g * cout
+            for i in range(n_in):
+                h_in[i] = h_out[i]
+        for r in range(n_head):
+            wv = params[hw + r * n_feat:hw + (r + 1) * n_feat]
+            e = params[hb + r]
+            for i in range(n_feat):
+                e += wv[i] * h_in[i]
+            mv = params[hm + r * c:hm + (r + 1) * c]
+            m = 0.0
+            for i in range(c):
+                m += mv[i] * x[i]
+            v[r] = m - e
+
+    @numba.njit(cache=True)
+    def _steps(xs, dts, feats, params, wts, cfg, ints, state, rings, out):  # pragma: no cover - compiled
+        """Samples xs (k, C) with steps dts (k,) through the networks (:func:`_networks`) and the
+        filter; writes [quat (4), omega (3)] per sample into out (k, 7) and advances state and
+        rings. feats (k, H): the networks' last features already computed for these samples
+        (then the networks are skipped), or an empty (0, H) array."""
+        c, nl, w = ints[0], ints[2], ints[3]
+        use_acc, use_mag, n_head = ints[4] != 0, ints[5] != 0, ints[7]
+        width = c
         for li in range(nl):
             width = max(width, ints[_HEADER + _PER_LAYER * li] * ints[_HEADER + _PER_LAYER * li + 2])
-        h_in = np.empty(max(width, c))
-        h_out = np.empty(max(width, c))
-        tap = np.empty(ints[1] * max(width, c), dtype=np.float32)
-        pre = np.empty(max(width, c), dtype=np.float32)
+        h_in = np.empty(max(width, ints[6]))
+        h_out = np.empty(max(width, ints[6]))
+        tap = np.empty(ints[1] * width, dtype=np.float32)
+        pre = np.empty(width, dtype=np.float32)
         v = np.empty(n_head)
+        no_feats = np.empty(0)
         for k in range(xs.shape[0]):
             t = int(state[0])
             x = xs[k]
-            # ---- networks: one ring buffer per layer (groups, span, c_in), float32 as the
-            # exported module's; the newest input written at row t mod span
-            n_in = c
-            for i in range(c):
-                h_in[i] = x[i]
-            if feats.shape[0] > 0:
-                for i in range(n_feat):
-                    h_in[i] = feats[k, i]
-                nl_run = 0
-            else:
-                nl_run = nl
-            for li in range(nl_run):
-                base = _HEADER + _PER_LAYER * li
-                g, cin, cout, d, span = ints[base], ints[base + 1], ints[base + 2], ints[base + 3], ints[base + 4]
-                wo, bo, ro = ints[base + 5], ints[base + 6], ints[base + 7]
-                p = t % span
-                for gr in range(g):
-                    for i in range(cin):
-                        rings[ro + (gr * span + p) * cin + i] = h_in[gr * cin + i]
-                n_tap = kk * cin
-                for gr in range(g):
-                    for j in range(kk):  # taps oldest first: t - (K - 1 - j) d
-                        rb = ro + (gr * span + (t - (kk - 1 - j) * d) % span) * cin
-                        for i in range(cin):
-                            tap[j * cin + i] = rings[rb + i]
-                    for o in range(cout):  # one float32 dot product over the K c_in taps per output
-                        # (a slice: indices from 0 need no negative-index wrap-around, so the
-                        # loop vectorises; wts[offset + i] runs ~5x slower)
-                        wv = wts[wo + (gr * cout + o) * n_tap:wo + (gr * cout + o + 1) * n_tap]
-                        u = wts[bo + gr * cout + o]
-                        for i in range(n_tap):
-                            u += wv[i] * tap[i]
-                        pre[o] = u
-                    for o in range(cout):  # GELU, sqrt(2)-scaled: u (1 + erf(u)), vectorised
-                        u = float(pre[o])
-                        h_out[gr * cout + o] = u * (1.0 + _erf(u))
-                n_in = g * cout
-                for i in range(n_in):
-                    h_in[i] = h_out[i]
-            # ---- head: [M y − (W h + b) ; −trust logits]
-            for r in range(n_head):
-                wv = params[hw + r * n_feat:hw + (r + 1) * n_feat]
-                e = params[hb + r]
-                for i in range(n_feat):
-                    e += wv[i] * h_in[i]
-                mv = params[hm + r * c:hm + (r + 1) * c]
-                m = 0.0
-                for i in range(c):
-                    m += mv[i] * x[i]
-                v[r] = m - e
+            _networks(x, t, feats[k] if feats.shape[0] > 0 else no_feats, params, wts, ints, rings,
+                      h_in, h_out, tap, pre, v)
             # ---- rest detector
             rb = _STATE_RING + 6 * (t % w)
             o0 = o1 = o2 = o3 = o4 = o5 = 0.0
@@ -266,16 +274,21 @@ class CompiledStreaming:
         self._dt1 = np.zeros(1)
         self.reset(np.array([1.0, 0.0, 0.0, 0.0]))
 
+    @staticmethod
+    def _quat0(q0) -> torch.Tensor:
+        q = torch.as_tensor(np.asarray(q0, dtype=np.float64)).reshape(-1)
+        if q.numel() != 4 or not bool(torch.isfinite(q).all()) or float(q.norm()) == 0.0:
+            raise ValueError(f"q0: expected a non-zero finite quaternion (w, x, y, z), got {q.tolist()}")
+        return q / q.norm()
+
     def reset(self, q0) -> None:
         """Start a new recording at attitude q0 (w, x, y, z), nav_from_body, ENU."""
         from . import so3
 
-        q = torch.as_tensor(np.asarray(q0, dtype=np.float64)).reshape(-1)
-        if q.numel() != 4 or not bool(torch.isfinite(q).all()) or float(q.norm()) == 0.0:
-            raise ValueError(f"q0: expected a non-zero finite quaternion (w, x, y, z), got {q.tolist()}")
+        q = self._quat0(q0)
         s = self._state
         s[:] = 0.0
-        s[1:10] = so3.quat_to_matrix(q / q.norm()).reshape(9).numpy()
+        s[1:10] = so3.quat_to_matrix(q).reshape(9).numpy()
         s[22] = s[23] = -float(self._ints[3]) - 1.0  # no unsteady sample yet
         self._ts.t = 0
         self._ts._reset_rings()  # zeros; the raw-sample ring holds the input mean (= causal zero padding)
@@ -318,6 +331,17 @@ class CompiledStreaming:
         return out[:, 0:4], out[:, 4:7]
 
     def run(self, imu, dt, q0) -> Tuple[np.ndarray, np.ndarray]:
-        """reset(q0), then imu (N, C) -> quat (N, 4), omega (N, 3)."""
+        """reset(q0), then imu (N, C) -> quat (N, 4), omega (N, 3). Every input is checked before
+        the state is reset (after an error the stream goes on as before)."""
+        xs = np.ascontiguousarray(np.asarray(imu, dtype=np.float64))
+        if xs.ndim != 2 or xs.shape[1] != self.axes:
+            raise ValueError(f"imu: expected shape (N, {self.axes}), got {list(xs.shape)}")
+        dts = np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],))
+        if not np.isfinite(xs).all():
+            i = [int(v) for v in np.argwhere(~np.isfinite(xs))[0]]
+            raise ValueError(f"imu: non-finite value at index {i} (expected finite readings: drop or interpolate that sample)")
+        if xs.shape[0] > 1 and not (np.isfinite(dts[1:]).all() and (dts[1:] > 0.0).all()):
+            raise ValueError("dt: expected finite time steps > 0 s after sample 0")
+        self._quat0(q0)
         self.reset(q0)
-        return self.step_chunk(imu, dt)
+        return self.step_chunk(xs, dts)

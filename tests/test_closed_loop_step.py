@@ -71,6 +71,8 @@ def test_training_takes_the_compiled_path_with_the_same_gradients():
         model.closed.backend = backend
         torch.manual_seed(3)  # the same dropout masks
         out = model.filter_closed_loop(imu, dt, rot0, context=511)
+        # the path taken: the compiled reverse pass for "auto", autograd nodes for "torch"
+        assert (type(out["rot"].grad_fn).__name__ == "ScanFunctionBackward") == (backend == "auto")
         loss = out["rot"].square().sum() + out["gyro_bias"].sum()
         model.zero_grad()
         loss.backward()

@@ -96,6 +96,11 @@ def test_streaming_chunk_refuses_bad_time_steps_before_changing_state(tmp_path):
     bad[3, 2] = float("nan")
     with pytest.raises((ValueError, torch.jit.Error), match="non-finite"):
         stream.step_chunk(bad, 1.0 / RATE)
+    # run() checks everything before it resets: a refused run leaves the stream where it was
+    with pytest.raises((ValueError, torch.jit.Error), match="dt"):
+        stream.run(imu[:20], torch.zeros(20), q0)
+    with pytest.raises((ValueError, torch.jit.Error), match="q0"):
+        stream.run(imu[:20], 1.0 / RATE, torch.zeros(4))
     q, _ = stream.step_chunk(imu[10:20], 1.0 / RATE)
     assert float(_angle(q, q_ref[10:20]).max()) < STEP_CHUNK_TOL
 

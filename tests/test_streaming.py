@@ -72,6 +72,11 @@ def test_bad_samples_raise_before_the_state_changes():
         stream.step(imu[10, :6], 1.0 / RATE)
     with pytest.raises(ValueError, match="q0"):
         stream.reset([0.0, 0.0, 0.0, 0.0])
+    # run() checks everything before it resets: a refused run leaves the stream where it was
+    with pytest.raises(ValueError, match="non-finite"):
+        stream.run(np.where(np.arange(20)[:, None] == 5, np.nan, imu[:20]), 1.0 / RATE, q0)
+    with pytest.raises(ValueError, match="q0"):
+        stream.run(imu[:20], 1.0 / RATE, [0.0, 0.0, 0.0, 0.0])
     q, _ = stream.step_chunk(imu[10:20], 1.0 / RATE)
     assert float(_angle(torch.from_numpy(q), torch.from_numpy(q_ref[10:20])).max()) < STEP_CHUNK_TOL
 

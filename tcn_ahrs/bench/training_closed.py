@@ -15,10 +15,10 @@ CLOSED_VARIANTS = ("eager", "tensor_scan", "threads1", "bf16", "compile")
 def closed_loop_step(variant: str, p: Dict[str, Any], device: str, seed: int, module, model, store, opt):
     """The shipped recipe's step (:meth:`tcn_ahrs.train.AHRSModule._closed_loop_step`, experiment
     broad9_cl): B streams x one chunk of ``window`` samples after ``receptive_field - 1`` samples
-    of context; the calibration networks over all of it, the closed loop (the tensor scan, float32
-    as in training) over the chunk, :func:`~tcn_ahrs.losses.attitude_loss`, backward, AdamW.
-    Variants: ``eager`` (the recipe: on the CPU the loop and its reverse pass compiled,
-    :class:`~tcn_ahrs.model.closed_loop_step.ScanFunction`), ``tensor_scan`` (the loop as tensor
+    of context; the calibration networks over all of it (float32), the closed loop over the chunk,
+    :func:`~tcn_ahrs.losses.attitude_loss`, backward, AdamW. Variants: ``eager`` (the recipe: on
+    the CPU the loop and its reverse pass compiled, float64 inside,
+    :class:`~tcn_ahrs.model.closed_loop_compiled.ScanFunction`), ``tensor_scan`` (the loop as tensor
     ops under autograd, as before: ``backend="torch"``), ``threads1`` (one torch thread), ``bf16``
     (the networks under bfloat16 autocast; filter and loss in float32), ``compile`` (torch.compile
     of the networks)."""

@@ -257,7 +257,10 @@ class ClosedLoopStreaming(StreamingAHRS):
 
     @torch.jit.export
     def run(self, imu: Tensor, dt: Union[float, Tensor], q0: Tensor) -> Tuple[Tensor, Tensor]:
-        """reset(q0), then imu (N, C) as one chunk -> quat (N, 4), omega (N, 3) (float64)."""
+        """reset(q0), then imu (N, C) as one chunk -> quat (N, 4), omega (N, 3) (float64). Every
+        input is checked before the state is reset (after an error the module goes on as before)."""
         self._check_imu(imu)
+        d = self._dt(dt, imu.size(0))
+        self._q0(q0)
         self.reset(q0)
-        return self.step_chunk(imu, dt)
+        return self.step_chunk(imu, d)

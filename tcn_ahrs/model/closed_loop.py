@@ -215,7 +215,7 @@ class ClosedLoopFilter(nn.Module):
     @torch.jit.unused
     def _scan(self, *args: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
         """The loop (arguments of :func:`closed_loop_scan`). ``backend="auto"`` on the CPU with
-        numba: evaluation (float64, no gradient) runs the compiled loop
+        numba: evaluation (no gradient) runs the compiled loop
         (:mod:`~tcn_ahrs.model.closed_loop_step`, ~1000x faster than the tensor scan); training
         (a gradient needed) runs :class:`~tcn_ahrs.model.closed_loop_compiled.ScanFunction`, the
         compiled loop with its compiled reverse pass. Otherwise (CUDA, no numba, or
@@ -230,9 +230,7 @@ class ClosedLoopFilter(nn.Module):
             return _scan(*args)
         if grad:  # training: compiled forward and reverse pass (float64 inside)
             return closed_loop_compiled.ScanFunction.apply(*args)
-        if all(a.dtype == torch.float64 for a in args):
-            return closed_loop_compiled.scan_numba(*args)
-        return _scan(*args)
+        return closed_loop_compiled.scan_numba(*args)
 
     @torch.jit.unused
     def gains(self) -> Dict[str, float]:

@@ -191,7 +191,7 @@ class ScanFunction(torch.autograd.Function):
         rows = torch.cat([gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain, dt], -1).detach().double()
         rows = np.ascontiguousarray(rows.numpy())
         state = np.ascontiguousarray(torch.cat([rot.reshape(-1, 9), bias], -1).detach().double().numpy())
-        ref = np.ascontiguousarray(east_ref.detach().double().numpy())
+        ref = np.array(east_ref.detach().double().numpy(), copy=True)  # kept for backward: no view
         b, n = rows.shape[0], rows.shape[1]
         out = np.empty((b, n, OUT))
         kb = float(bias_gain)
@@ -225,15 +225,16 @@ class ScanFunction(torch.autograd.Function):
 def scan_numba(rot: Tensor, bias: Tensor, gyro: Tensor, acc_unit: Tensor, east_b: Tensor, acc_gain: Tensor,
                mag_gain: Tensor, rest_gain: Tensor, east_ref: Tensor, dt: Tensor, bias_gain: Tensor
                ) -> Tuple[Tensor, Tensor, Tensor]:
-    """:func:`~tcn_ahrs.model.closed_loop.closed_loop_scan` (same arguments and returns, float64,
-    CPU, no gradient) compiled by numba; batch entries run in parallel threads."""
-    rows = torch.cat([gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain, dt], -1)
-    state = torch.cat([rot.reshape(-1, 9), bias], -1)
+    """:func:`~tcn_ahrs.model.closed_loop.closed_loop_scan` (same arguments and returns, CPU, no
+    gradient) compiled by numba, float64 inside, returned in gyro's dtype; batch entries run in
+    parallel threads."""
+    rows = torch.cat([gyro, acc_unit, east_b, acc_gain, mag_gain, rest_gain, dt], -1).detach()
+    state = torch.cat([rot.reshape(-1, 9), bias], -1).detach()
     b, n = gyro.shape[0], gyro.shape[1]
     out = np.empty((b, n, OUT))
     _scan_nb(np.ascontiguousarray(state.double().numpy()), np.ascontiguousarray(rows.double().numpy()),
-             np.ascontiguousarray(east_ref.double().numpy()), float(bias_gain), out)
-    o = torch.from_numpy(out)
+             np.ascontiguousarray(east_ref.detach().double().numpy()), float(bias_gain), out)
+    o = torch.from_numpy(out).to(gyro.dtype)
     return o[..., 0:9].reshape(b, n, 3, 3), o[..., 9:12], o[..., 12:15]
 
 
