@@ -26,13 +26,12 @@ def shipped_model(axes: int, ckpt: Optional[str], seed: int = 0) -> Tuple[Any, s
     return make_model(axes, seed), f"default config (no {ckpt})", 100.0
 
 
-def _exports(model, rate: float, tmp: Path):
+def _export(model, rate: float, path: Path, mode: str):
+    """The exported module (``mode`` batch | streaming) of ``model``, saved and loaded again."""
     from ..export import export_batch, export_streaming
 
-    meta = {"rate_hz": rate}
-    export_batch(model, tmp / "batch.pt", meta)
-    export_streaming(model, tmp / "stream.pt", meta)
-    return torch.jit.load(str(tmp / "batch.pt")), torch.jit.load(str(tmp / "stream.pt"))
+    (export_batch if mode == "batch" else export_streaming)(model, path, {"rate_hz": rate})
+    return torch.jit.load(str(path))
 
 
 def _compiled(model, rate: float):
@@ -53,7 +52,8 @@ def bench_inference(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, 
     q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     rows: List[Dict[str, Any]] = []
     tmp = tempfile.TemporaryDirectory()
-    batch, stream = _exports(model, model_rate, Path(tmp.name))
+    batch = _export(model, model_rate, Path(tmp.name) / "batch.pt", "batch")
+    stream = _export(model, model_rate, Path(tmp.name) / "stream.pt", "streaming")
     compiled, why = _compiled(model, model_rate)
     w, r, budget = int(p["warmup"]), int(p["repeats"]), float(p["max_seconds"])
 
@@ -138,7 +138,7 @@ def bench_streaming(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
             axes = int(axes)
             model, what, model_rate = shipped_model(axes, (p.get("ckpts") or {}).get(str(axes)), seed)
             models[axes] = what
-            _, m = _exports(model, model_rate, Path(tmp.name))
+            m = _export(model, model_rate, Path(tmp.name) / f"stream{axes}.pt", "streaming")
             x = synthetic_imu(1, n + warm, axes, rate, seed)["imu"][0]
             xs = list(x.unbind(0))
             q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)

@@ -11,10 +11,22 @@ from torch import Tensor, nn
 
 from .. import so3
 from ..model.closed_loop_step import (closed_loop_update, east_reference_scalar, loop_inputs, matrix_to_quat_scalar,
-                                       rest_update, split_float32)
+                                       rest_update, split_row)
+from ..model.closed_loop import window_samples
 from .fused import fuse_model
 from .inputs import ExportError, _Inputs
 from .open_loop import StreamingAHRS
+
+
+def rest_window(closed: nn.Module, metadata: Mapping[str, Any]) -> int:
+    """The rest detector's window (samples) the exports run with: the one the model was trained
+    with, or — when the checkpoint does not record it — the one for metadata's ``rate_hz``."""
+    if int(closed.rest_window) > 0:
+        return int(closed.rest_window)
+    rate = metadata.get("rate_hz")
+    if not rate:
+        raise ExportError("closed-loop export: the rest window is unset and no rate_hz is known (pass rate=HZ)")
+    return window_samples(closed.rest_time, float(rate))
 
 
 class ClosedLoopBatch(_Inputs):
@@ -38,12 +50,7 @@ class ClosedLoopBatch(_Inputs):
         self.axes = int(model.axes)
         self.calibration = copy.deepcopy(model.calibration).float().eval()
         self.closed = copy.deepcopy(model.closed).double().eval()
-        if int(self.closed.rest_window) <= 0:
-            rate = metadata.get("rate_hz")
-            if not rate:
-                raise ExportError("closed-loop export: the rest window is unset and no rate_hz is known "
-                                  "(pass rate=HZ)")
-            self.closed.set_rate(float(rate))
+        self.closed.rest_window.fill_(rest_window(model.closed, metadata))
         self.metadata_json = json.dumps(dict(metadata), sort_keys=True)
 
     @torch.jit.export
@@ -114,13 +121,7 @@ class ClosedLoopStreaming(StreamingAHRS):
         fused = fuse_model(model)
         super().__init__(fused, metadata, torch.float32)
         closed = model.closed
-        window = int(closed.rest_window)
-        if window <= 0:
-            rate = metadata.get("rate_hz")
-            if not rate:
-                raise ExportError("closed-loop export: the rest window is unset and no rate_hz is known (pass rate=HZ)")
-            window = max(2, int(round(closed.rest_time * float(rate))))
-        self.window = window
+        self.window = rest_window(closed, metadata)
         self.use_acc = bool(closed.use_acc)
         self.use_mag = bool(closed.use_mag) and self.axes == 9
         self.k_acc = float(closed.log_acc_gain.detach().exp())
@@ -139,10 +140,10 @@ class ClosedLoopStreaming(StreamingAHRS):
         self.register_buffer("head_matrix", torch.cat([fused["calib_matrix"], torch.zeros(2, c, dtype=torch.float64)], 0))
         self.state = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
         self.east_ref = [0.0, 0.0, 0.0]
-        self.rest_ring = [0.0] * (6 * window)
+        self.rest_ring = [0.0] * (6 * self.window)
         self.rest_sums = [0.0] * 6
-        self.last_unsteady_gyro = -window - 1
-        self.last_unsteady_acc = -window - 1
+        self.last_unsteady_gyro = -self.window - 1
+        self.last_unsteady_acc = -self.window - 1
 
     @torch.jit.export
     def reset(self, q0: Tensor) -> None:
@@ -240,15 +241,7 @@ class ClosedLoopStreaming(StreamingAHRS):
         hi: List[List[float]] = []
         lo: List[List[float]] = []
         for k in range(n):
-            vals = self._filter(vs[k], raws[k], d[k])
-            hk: List[float] = []
-            lk: List[float] = []
-            for val in vals:
-                a, b = split_float32(val)
-                hk.append(a)
-                lk.append(b)
-            hi.append(hk)
-            lo.append(lk)
+            split_row(self._filter(vs[k], raws[k], d[k]), hi, lo)
         out = torch.tensor(hi, dtype=torch.float64) + torch.tensor(lo, dtype=torch.float64)
         return out[:, 0:4], out[:, 4:7]
 

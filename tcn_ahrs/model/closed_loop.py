@@ -54,6 +54,11 @@ from .closed_loop_step import scan_scalar
 from .ecf import _unit
 
 
+def window_samples(rest_time: float, rate_hz: float) -> int:
+    """The rest detector's window: samples in ``rest_time`` seconds at ``rate_hz`` (at least 2)."""
+    return max(2, int(round(rest_time * rate_hz)))
+
+
 def rest_window(dt: Tensor, rest_time: float) -> int:
     """Samples in ``rest_time`` seconds at the median step of dt (B, N)."""
     step = float(dt[:, 1:].median()) if dt.shape[1] > 1 else 0.01
@@ -186,7 +191,7 @@ class ClosedLoopFilter(nn.Module):
     @torch.jit.unused
     def set_rate(self, rate_hz: float) -> None:
         """Fix the rest window (samples) for data at ``rate_hz``."""
-        self.rest_window.fill_(max(2, int(round(self.rest_time * float(rate_hz)))))
+        self.rest_window.fill_(window_samples(self.rest_time, float(rate_hz)))
 
     def window(self, dt: Tensor) -> int:
         w = int(self.rest_window)

@@ -178,6 +178,19 @@ def split_float32(v: float) -> Tuple[float, float]:
     return hi, v - hi
 
 
+def split_row(vals: List[float], out_hi: List[List[float]], out_lo: List[List[float]]) -> None:
+    """Appends the :func:`split_float32` halves of ``vals`` as one row each to ``out_hi`` / ``out_lo``
+    (then ``torch.tensor(out_hi) + torch.tensor(out_lo)`` is the float64 table, in TorchScript)."""
+    hi: List[float] = []
+    lo: List[float] = []
+    for v in vals:
+        h, l_ = split_float32(v)
+        hi.append(h)
+        lo.append(l_)
+    out_hi.append(hi)
+    out_lo.append(lo)
+
+
 def scan_lists(state: List[float], east_ref: List[float], rows: List[List[float]], bias_gain: float,
                out_hi: List[List[float]], out_lo: List[List[float]]) -> List[float]:
     """The loop over ``rows`` (one :data:`ROW` list per sample) from ``state`` = C (9, row-major)
@@ -191,14 +204,7 @@ def scan_lists(state: List[float], east_ref: List[float], rows: List[List[float]
         (r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, c0, c1, c2) = closed_loop_update(
             r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, x[0], x[1], x[2], x[3], x[4], x[5],
             x[6], x[7], x[8], x[9], x[10], x[11], e0, e1, e2, x[12], bias_gain)
-        hi: List[float] = []
-        lo: List[float] = []
-        for v in [r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, c0, c1, c2]:
-            h, l_ = split_float32(v)
-            hi.append(h)
-            lo.append(l_)
-        out_hi.append(hi)
-        out_lo.append(lo)
+        split_row([r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2, c0, c1, c2], out_hi, out_lo)
     return [r00, r01, r02, r10, r11, r12, r20, r21, r22, b0, b1, b2]
 
 
