@@ -1,0 +1,521 @@
+"""The VQF-grade backbone: one update of the attitude filter of Laidig & Seel, "VQF: Highly
+accurate IMU orientation estimation with bias estimation and magnetic disturbance rejection",
+Information Fusion 91 (2023), written on scalars once (this file's own code, following the
+paper's Sec. 3 and the documented algorithm of the ``vqf`` package) and built for two backends
+(:mod:`tcn_ahrs.kernels.ops`): numba floats and torch (B,) tensors.
+
+Per sample, as in the paper (frames: body B, almost-inertial I_i, 6D earth E_i, earth E = ENU)::
+
+    gyro   q_gyr <- q_gyr ⊗ exp((ω − b) dt / 2)                strapdown, Eq. (2)
+    acc    a_I   = q_gyr a q_gyr*, low-passed (2nd-order Butterworth, τ_acc) in I_i   Sec. 3.2
+           a_E   = q_acc a_I q_acc*,  q_acc <- rot(a_E -> up, τ_acc' angle) ⊗ q_acc   inclination
+    bias   Kalman update of b from the inclination disagreement in motion (vertical axis
+           barely observable) and from the low-passed gyro at rest                     Sec. 3.4
+    mag    δ <- δ + k_mag·wrap(atan2(m_Ex, m_Ey) − δ), heading only; k_mag = 0 while the field's
+           norm or dip departs from the recording's own reference (disturbance rejection) Sec. 3.3
+    output q_6D = q_acc ⊗ q_gyr,  q_9D = [cos δ/2, 0, 0, sin δ/2] ⊗ q_6D    (nav_from_body, ENU)
+
+The learned residuals enter through four per-sample inputs that equal 1 / 0 in the untrained
+model (so the untrained model *is* this backbone): the gyro fed in (already corrected), the
+accelerometer trust τ_acc' that scales the inclination correction angle, the magnetometer trust
+that scales k_mag, and the bias trust that scales each Kalman bias increment. Trust 0 in all three
+is plain strapdown integration with the bias frozen.
+
+Deliberate differences from ``vqf`` (tests/test_backbone.py holds the rest equal to it):
+* the time step may change from sample to sample (coefficients are recomputed for each new dt,
+  filter states kept); ``vqf`` takes one fixed period;
+* the inclination correction is written with the angle (atan2) so that it can be scaled; at
+  trust 1 it is ``vqf``'s correction to round-off;
+* the start may be a given attitude (q_gyr = q0, q_acc = 1, δ = 0) instead of the identity.
+
+State and coefficients are flat float vectors; their layouts are :data:`STATE` and :data:`COEFF`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import astuple, dataclass, fields
+from typing import Dict, List, Tuple
+
+from .ops import float_ops
+
+# ------------------------------------------------------------------------------ parameters
+
+
+@dataclass(frozen=True)
+class BackboneParams:
+    """The backbone's parameters, VQF's defaults (its ``VQFParams``; names in snake case).
+
+    Units: seconds, degrees and °/s where named so (as VQF's), m/s² for ``rest_th_acc``,
+    fractions for ``mag_norm_th``. Flags are 1.0 / 0.0 (kept as floats: one flat vector)."""
+
+    tau_acc: float = 3.0                 # s, low-pass of the accelerometer in the inertial frame
+    tau_mag: float = 9.0                 # s, heading correction time constant
+    motion_bias: float = 1.0             # bias estimation in motion
+    rest_bias: float = 1.0               # rest detection and bias estimation at rest
+    mag_rejection: float = 1.0           # magnetic disturbance detection and rejection
+    bias_sigma_init: float = 0.5         # °/s
+    bias_forgetting_time: float = 100.0  # s
+    bias_clip: float = 2.0               # °/s
+    bias_sigma_motion: float = 0.1       # °/s
+    bias_vertical_forgetting: float = 1e-4
+    bias_sigma_rest: float = 0.03        # °/s
+    rest_min_time: float = 1.5           # s
+    rest_filter_tau: float = 0.5         # s
+    rest_th_gyro: float = 2.0            # °/s
+    rest_th_acc: float = 0.5             # m/s²
+    mag_current_tau: float = 0.05        # s
+    mag_ref_tau: float = 20.0            # s
+    mag_norm_th: float = 0.1             # relative
+    mag_dip_th: float = 10.0             # °
+    mag_new_time: float = 20.0           # s
+    mag_new_first_time: float = 5.0      # s
+    mag_new_min_gyro: float = 20.0       # °/s
+    mag_min_undisturbed_time: float = 0.5  # s
+    mag_max_rejection_time: float = 60.0   # s
+    mag_rejection_factor: float = 2.0
+
+    def vector(self) -> Tuple[float, ...]:
+        return tuple(float(v) for v in astuple(self))
+
+    @classmethod
+    def from_mapping(cls, cfg) -> "BackboneParams":
+        known = {f.name for f in fields(cls)}
+        bad = set(cfg) - known
+        if bad:
+            raise ValueError(f"backbone parameters: unknown key(s) {sorted(bad)}; expected a subset of {sorted(known)}")
+        return cls(**{k: float(v) for k, v in dict(cfg).items()})
+
+
+def _layout(spec: List[Tuple[str, int]]) -> Dict[str, int]:
+    out, k = {}, 0
+    for name, n in spec:
+        out[name] = k
+        k += n
+    out["_size"] = k
+    return out
+
+
+PARAM = _layout([(f.name, 1) for f in fields(BackboneParams)])
+
+# low-pass filter groups: (name, components); each holds [running, count, state0 (d), state1 (d)]
+_FILTERS = [("acc_lp", 3), ("rot_lp", 9), ("bias_lp", 2), ("rest_gyro_lp", 3), ("rest_acc_lp", 3),
+            ("mag_lp", 2)]
+STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("mag_disturbed", 1),
+                 ("k_mag_init", 1), ("bias", 3), ("bias_p", 9), ("rest_time", 1), ("rest_gyro", 3),
+                 ("mag_ref_norm", 1), ("mag_ref_dip", 1), ("mag_undisturbed_time", 1),
+                 ("mag_reject_time", 1), ("mag_cand_norm", 1), ("mag_cand_dip", 1), ("mag_cand_time", 1)]
+                + [(n, 2 + 2 * d) for n, d in _FILTERS])
+COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
+                 ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
+                 ("bias_vertical_w", 1), ("bias_rest_w", 1)])
+N_STATE = STATE["_size"]
+N_COEFF = COEFF["_size"]
+N_PARAM = PARAM["_size"]
+
+# flat indices as module constants (numba reads globals as compile-time constants)
+_P = {k: v for k, v in PARAM.items()}
+_S = {k: v for k, v in STATE.items()}
+_C = {k: v for k, v in COEFF.items()}
+P_TAU_ACC, P_TAU_MAG = _P["tau_acc"], _P["tau_mag"]
+P_MOTION_BIAS, P_REST_BIAS, P_MAG_REJ = _P["motion_bias"], _P["rest_bias"], _P["mag_rejection"]
+P_SIGMA_INIT, P_FORGET, P_CLIP = _P["bias_sigma_init"], _P["bias_forgetting_time"], _P["bias_clip"]
+P_SIGMA_MOTION, P_VERT_FORGET, P_SIGMA_REST = (_P["bias_sigma_motion"], _P["bias_vertical_forgetting"],
+                                               _P["bias_sigma_rest"])
+P_REST_MIN_T, P_REST_TAU, P_REST_TH_G, P_REST_TH_A = (_P["rest_min_time"], _P["rest_filter_tau"],
+                                                      _P["rest_th_gyro"], _P["rest_th_acc"])
+P_MAG_CUR_TAU, P_MAG_REF_TAU, P_MAG_NORM_TH, P_MAG_DIP_TH = (_P["mag_current_tau"], _P["mag_ref_tau"],
+                                                              _P["mag_norm_th"], _P["mag_dip_th"])
+P_MAG_NEW_T, P_MAG_NEW_FIRST_T, P_MAG_NEW_MIN_G = (_P["mag_new_time"], _P["mag_new_first_time"],
+                                                   _P["mag_new_min_gyro"])
+P_MAG_MIN_UND_T, P_MAG_MAX_REJ_T, P_MAG_REJ_FACTOR = (_P["mag_min_undisturbed_time"],
+                                                      _P["mag_max_rejection_time"], _P["mag_rejection_factor"])
+S_GQ, S_AQ, S_DELTA, S_REST, S_MAGDIST, S_KMINIT = (_S["gyr_quat"], _S["acc_quat"], _S["delta"], _S["rest"],
+                                                    _S["mag_disturbed"], _S["k_mag_init"])
+S_BIAS, S_P, S_REST_T, S_REST_G = _S["bias"], _S["bias_p"], _S["rest_time"], _S["rest_gyro"]
+S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T = (_S["mag_ref_norm"], _S["mag_ref_dip"], _S["mag_undisturbed_time"],
+                                          _S["mag_reject_time"])
+S_MCAND_N, S_MCAND_D, S_MCAND_T = _S["mag_cand_norm"], _S["mag_cand_dip"], _S["mag_cand_time"]
+F_ACC, F_ROT, F_BIAS, F_RG, F_RA, F_MAG = (_S["acc_lp"], _S["rot_lp"], _S["bias_lp"], _S["rest_gyro_lp"],
+                                           _S["rest_acc_lp"], _S["mag_lp"])
+C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B, C_MAG_A = (_C["ts"], _C["acc_b"], _C["acc_a"], _C["rest_b"],
+                                                               _C["rest_a"], _C["mag_b"], _C["mag_a"])
+C_KMAG, C_KMAGREF, C_P0, C_V, C_WM, C_WV, C_WR = (_C["k_mag"], _C["k_mag_ref"], _C["bias_p0"], _C["bias_v"],
+                                                  _C["bias_motion_w"], _C["bias_vertical_w"], _C["bias_rest_w"])
+DEG = math.pi / 180.0
+EPS = 2.220446049250313e-16  # float64 machine epsilon: VQF's threshold for a zero rotation rate
+
+
+def initial_state(params: BackboneParams) -> List[float]:
+    """The state at the start (VQF's ``resetState``): identity quaternions, δ = 0, the bias
+    covariance at its initial value, the field reference unknown (disturbed until accepted),
+    every low-pass filter in its averaging phase."""
+    s = [0.0] * N_STATE
+    s[S_GQ] = 1.0
+    s[S_AQ] = 1.0
+    s[S_MAGDIST] = 1.0
+    s[S_KMINIT] = 1.0
+    p0 = (params.bias_sigma_init * 100.0) ** 2
+    for i in range(3):
+        s[S_P + 4 * i] = p0
+    s[S_MREJ_T] = params.mag_max_rejection_time
+    s[S_MCAND_N] = -1.0
+    return s
+
+
+
+# ------------------------------------------------------------------------------ the step
+# The ops table this module is built with: the float table (numba) when imported normally;
+# :func:`tcn_ahrs.kernels.ops.load_kernel` executes this same file again with the torch table.
+ops = globals().get("__ops__") or float_ops()
+jit, where, both, either, negate, nograd = ops.jit, ops.where, ops.both, ops.either, ops.negate, ops.nograd
+sqrt, sin, cos, tan, exp, atan2, asin, fabs = (ops.sqrt, ops.sin, ops.cos, ops.tan, ops.exp, ops.atan2,
+                                               ops.asin, ops.fabs)
+fmax, clip = ops.fmax, ops.clip
+PI = math.pi
+
+# ------------------------------------------------------------------ coefficients
+@jit
+def butter(c, at_b, at_a, tau, ts):
+    """2nd-order Butterworth low-pass (VQF's filterCoeffs): cut-off √2/(2π τ); passthrough when
+    τ < ts/2 (cut-off beyond 90 % of Nyquist)."""
+    fc = math.sqrt(2.0) / (2.0 * PI * tau)
+    cc = tan(PI * fc * ts)
+    d = cc * cc + math.sqrt(2.0) * cc + 1.0
+    b0 = cc * cc / d
+    thru = tau < ts / 2.0
+    c[at_b] = where(thru, 1.0 + 0.0 * b0, b0)
+    c[at_b + 1] = where(thru, 0.0 * b0, 2.0 * b0)
+    c[at_b + 2] = where(thru, 0.0 * b0, b0)
+    c[at_a] = where(thru, 0.0 * b0, 2.0 * (cc * cc - 1.0) / d)
+    c[at_a + 1] = where(thru, 0.0 * b0, (1.0 - math.sqrt(2.0) * cc + cc * cc) / d)
+
+@jit
+def coefficients(p, ts, c):
+    c[C_TS] = ts
+    butter(c, C_ACC_B, C_ACC_A, p[P_TAU_ACC], ts)
+    butter(c, C_REST_B, C_REST_A, p[P_REST_TAU], ts)
+    butter(c, C_MAG_B, C_MAG_A, fmax(p[P_MAG_CUR_TAU], 1e-9), ts)
+    c[C_KMAG] = 1.0 - exp(-ts / p[P_TAU_MAG])   # gain of a first-order filter, 1/e time tau
+    c[C_KMAGREF] = 1.0 - exp(-ts / p[P_MAG_REF_TAU])
+    c[C_P0] = (p[P_SIGMA_INIT] * 100.0) ** 2     # covariances in (0.01 °/s)², as VQF
+    # the system noise grows the variance from 0 to (0.1 °/s)² in bias_forgetting_time
+    v = (0.1 * 100.0) ** 2 * ts / p[P_FORGET]
+    c[C_V] = v
+    pm = (p[P_SIGMA_MOTION] * 100.0) ** 2
+    c[C_WM] = pm * pm / v + pm
+    c[C_WV] = c[C_WM] / fmax(p[P_VERT_FORGET], 1e-10)
+    pr = (p[P_SIGMA_REST] * 100.0) ** 2
+    c[C_WR] = pr * pr / v + pr
+
+# ------------------------------------------------------------------ low-pass filters
+# A group of d components at s[f]: [running, count, state0 (d), state1 (d)]. During the
+# first tau seconds the output is the mean of the samples so far (state1 holds the sum); at
+# count·ts ≥ tau the filter starts from that mean in steady state (VQF's filterVec).
+@jit
+def lp_begin(s, f, tau, ts):
+    run = s[f] > 0.5
+    n = s[f + 1] + 1.0
+    s[f + 1] = where(run, s[f + 1], n)
+    start = both(negate(run), n * ts >= tau)
+    return run, n, start
+
+@jit
+def lp(s, c, f, d, i, x, at_b, at_a, run, n, start):
+    k0 = f + 2 + i
+    k1 = f + 2 + d + i
+    b0, b1, b2, a1, a2 = c[at_b], c[at_b + 1], c[at_b + 2], c[at_a], c[at_a + 1]
+    y = b0 * x + s[k0]                    # direct form II transposed, a0 = 1
+    r0 = b1 * x - a1 * y + s[k1]
+    r1 = b2 * x - a2 * y
+    total = s[k1] + x
+    mean = total / n
+    s[k0] = where(run, r0, where(start, mean * (1.0 - b0), 0.0 * mean))
+    s[k1] = where(run, r1, where(start, mean * (b2 - a2), total))
+    return where(run, y, mean)
+
+@jit
+def lp_end(s, f, run, start):
+    s[f] = where(either(run, start), 1.0, 0.0)
+
+# ------------------------------------------------------------------ quaternion helpers
+@jit
+def qmul(a0, a1, a2, a3, b0, b1, b2, b3):
+    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3, a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
+            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1, a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
+
+@jit
+def qrot(q0, q1, q2, q3, v0, v1, v2):
+    """q v q* for a unit quaternion q (w, x, y, z)."""
+    x = (1 - 2 * q2 * q2 - 2 * q3 * q3) * v0 + 2 * v1 * (q2 * q1 - q0 * q3) + 2 * v2 * (q0 * q2 + q3 * q1)
+    y = 2 * v0 * (q0 * q3 + q2 * q1) + v1 * (1 - 2 * q1 * q1 - 2 * q3 * q3) + 2 * v2 * (q2 * q3 - q1 * q0)
+    z = 2 * v0 * (q3 * q1 - q0 * q2) + 2 * v1 * (q0 * q1 + q3 * q2) + v2 * (1 - 2 * q1 * q1 - 2 * q2 * q2)
+    return x, y, z
+
+@jit
+def quat6(s):
+    return qmul(s[S_AQ], s[S_AQ + 1], s[S_AQ + 2], s[S_AQ + 3], s[S_GQ], s[S_GQ + 1], s[S_GQ + 2], s[S_GQ + 3])
+
+@jit
+def quat9(s):
+    w, x, y, z = quat6(s)
+    ch = cos(s[S_DELTA] / 2.0)
+    sh = sin(s[S_DELTA] / 2.0)
+    return ch * w - sh * z, ch * x - sh * y, ch * y + sh * x, ch * z + sh * w
+
+# ------------------------------------------------------------------ gyroscope
+@jit
+def gyro_update(s, p, c, gx, gy, gz):
+    ts = c[C_TS]
+    if p[P_REST_BIAS] > 0.5 or p[P_MAG_REJ] > 0.5:
+        # rest detection, gyro part: deviation from the low-passed rate (decisions only)
+        run, n, start = lp_begin(s, F_RG, p[P_REST_TAU], ts)
+        l0 = lp(s, c, F_RG, 3, 0, nograd(gx), C_REST_B, C_REST_A, run, n, start)
+        l1 = lp(s, c, F_RG, 3, 1, nograd(gy), C_REST_B, C_REST_A, run, n, start)
+        l2 = lp(s, c, F_RG, 3, 2, nograd(gz), C_REST_B, C_REST_A, run, n, start)
+        lp_end(s, F_RG, run, start)
+        d0, d1, d2 = nograd(gx) - l0, nograd(gy) - l1, nograd(gz) - l2
+        clip_ = p[P_CLIP] * DEG
+        moving = either(d0 * d0 + d1 * d1 + d2 * d2 >= (p[P_REST_TH_G] * DEG) ** 2,
+                        either(fabs(l0) > clip_, either(fabs(l1) > clip_, fabs(l2) > clip_)))
+        s[S_REST_T] = where(moving, 0.0 * l0, s[S_REST_T])
+        s[S_REST] = where(moving, 0.0 * l0, s[S_REST])
+        s[S_REST_G], s[S_REST_G + 1], s[S_REST_G + 2] = l0, l1, l2
+    wx = gx - s[S_BIAS]
+    wy = gy - s[S_BIAS + 1]
+    wz = gz - s[S_BIAS + 2]
+    n2 = wx * wx + wy * wy + wz * wz
+    norm = sqrt(n2 + 1e-300)  # the tiny term keeps the gradient finite at a zero rate
+    turn = norm > EPS
+    safe = where(turn, norm, 1.0 + 0.0 * norm)
+    half = norm * ts / 2.0
+    cw = cos(half)
+    k = sin(half) / safe
+    q0, q1, q2, q3 = qmul(s[S_GQ], s[S_GQ + 1], s[S_GQ + 2], s[S_GQ + 3], cw, k * wx, k * wy, k * wz)
+    inv = 1.0 / sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    s[S_GQ] = where(turn, q0 * inv, s[S_GQ])
+    s[S_GQ + 1] = where(turn, q1 * inv, s[S_GQ + 1])
+    s[S_GQ + 2] = where(turn, q2 * inv, s[S_GQ + 2])
+    s[S_GQ + 3] = where(turn, q3 * inv, s[S_GQ + 3])
+
+# ------------------------------------------------------------------ accelerometer
+@jit
+def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
+    ts = c[C_TS]
+    if p[P_REST_BIAS] > 0.5:
+        run, n, start = lp_begin(s, F_RA, p[P_REST_TAU], ts)
+        l0 = lp(s, c, F_RA, 3, 0, nograd(ax), C_REST_B, C_REST_A, run, n, start)
+        l1 = lp(s, c, F_RA, 3, 1, nograd(ay), C_REST_B, C_REST_A, run, n, start)
+        l2 = lp(s, c, F_RA, 3, 2, nograd(az), C_REST_B, C_REST_A, run, n, start)
+        lp_end(s, F_RA, run, start)
+        d0, d1, d2 = nograd(ax) - l0, nograd(ay) - l1, nograd(az) - l2
+        still = d0 * d0 + d1 * d1 + d2 * d2 < p[P_REST_TH_A] ** 2
+        rest_t = where(still, s[S_REST_T] + ts, 0.0 * l0)
+        s[S_REST] = where(still, where(rest_t >= p[P_REST_MIN_T], 1.0 + 0.0 * l0, s[S_REST]), 0.0 * l0)
+        s[S_REST_T] = rest_t
+    # the accelerometer in the almost-inertial frame I_i, low-passed there (Sec. 3.2)
+    e0, e1, e2 = qrot(s[S_GQ], s[S_GQ + 1], s[S_GQ + 2], s[S_GQ + 3], ax, ay, az)
+    run, n, start = lp_begin(s, F_ACC, p[P_TAU_ACC], ts)
+    f0 = lp(s, c, F_ACC, 3, 0, e0, C_ACC_B, C_ACC_A, run, n, start)
+    f1 = lp(s, c, F_ACC, 3, 1, e1, C_ACC_B, C_ACC_A, run, n, start)
+    f2 = lp(s, c, F_ACC, 3, 2, e2, C_ACC_B, C_ACC_A, run, n, start)
+    lp_end(s, F_ACC, run, start)
+    # ... in the 6D earth frame E_i, normalised
+    v0, v1, v2 = qrot(s[S_AQ], s[S_AQ + 1], s[S_AQ + 2], s[S_AQ + 3], f0, f1, f2)
+    inv = 1.0 / sqrt(v0 * v0 + v1 * v1 + v2 * v2 + 1e-300)
+    v0, v1, v2 = v0 * inv, v1 * inv, v2 * inv
+    # inclination correction: the rotation taking v to up, its angle scaled by the trust
+    # (trust 1: VQF's full correction of the low-passed direction)
+    sh = sqrt(v0 * v0 + v1 * v1 + 1e-300)
+    half = acc_trust * atan2(sh, v2) / 2.0
+    tilted = sh > 1e-12
+    k = sin(half) / where(tilted, sh, 1.0 + 0.0 * sh)
+    cx = where(tilted, k * v1, where(v2 < 0.0, sin(half), 0.0 * sh))  # upside down: about x
+    cy = where(tilted, -k * v0, 0.0 * sh)
+    q0, q1, q2, q3 = qmul(cos(half), cx, cy, 0.0 * sh, s[S_AQ], s[S_AQ + 1], s[S_AQ + 2], s[S_AQ + 3])
+    inv = 1.0 / sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    s[S_AQ], s[S_AQ + 1], s[S_AQ + 2], s[S_AQ + 3] = q0 * inv, q1 * inv, q2 * inv, q3 * inv
+    if p[P_MOTION_BIAS] > 0.5 or p[P_REST_BIAS] > 0.5:
+        bias_update(s, p, c, v0, v1, bias_trust)
+
+@jit
+def bias_update(s, p, c, v0, v1, bias_trust):
+    """Sec. 3.4: a Kalman filter on the bias b. In motion the measurement is the inclination
+    disagreement as a rate, y = [−v_y, v_x, 0]/ts + (low-passed R b)_xy with H = low-passed R
+    (the 6D attitude as a matrix); the vertical component is barely observable (large W). At
+    rest y is the low-passed gyro with H = I. Covariances in (0.01 °/s)²."""
+    ts = c[C_TS]
+    b0, b1, b2 = s[S_BIAS], s[S_BIAS + 1], s[S_BIAS + 2]
+    w, x, y, z = quat6(s)
+    r00 = 1 - 2 * y * y - 2 * z * z
+    r01 = 2 * (y * x - w * z)
+    r02 = 2 * (w * y + z * x)
+    r10 = 2 * (w * z + y * x)
+    r11 = 1 - 2 * x * x - 2 * z * z
+    r12 = 2 * (y * z - x * w)
+    r20 = 2 * (z * x - w * y)
+    r21 = 2 * (w * x + z * y)
+    r22 = 1 - 2 * x * x - 2 * y * y
+    rb0 = r00 * b0 + r01 * b1 + r02 * b2
+    rb1 = r10 * b0 + r11 * b1 + r12 * b2
+    run, n, start = lp_begin(s, F_ROT, p[P_TAU_ACC], ts)
+    h00 = lp(s, c, F_ROT, 9, 0, r00, C_ACC_B, C_ACC_A, run, n, start)
+    h01 = lp(s, c, F_ROT, 9, 1, r01, C_ACC_B, C_ACC_A, run, n, start)
+    h02 = lp(s, c, F_ROT, 9, 2, r02, C_ACC_B, C_ACC_A, run, n, start)
+    h10 = lp(s, c, F_ROT, 9, 3, r10, C_ACC_B, C_ACC_A, run, n, start)
+    h11 = lp(s, c, F_ROT, 9, 4, r11, C_ACC_B, C_ACC_A, run, n, start)
+    h12 = lp(s, c, F_ROT, 9, 5, r12, C_ACC_B, C_ACC_A, run, n, start)
+    h20 = lp(s, c, F_ROT, 9, 6, r20, C_ACC_B, C_ACC_A, run, n, start)
+    h21 = lp(s, c, F_ROT, 9, 7, r21, C_ACC_B, C_ACC_A, run, n, start)
+    h22 = lp(s, c, F_ROT, 9, 8, r22, C_ACC_B, C_ACC_A, run, n, start)
+    lp_end(s, F_ROT, run, start)
+    run, n, start = lp_begin(s, F_BIAS, p[P_TAU_ACC], ts)
+    bl0 = lp(s, c, F_BIAS, 2, 0, rb0, C_ACC_B, C_ACC_A, run, n, start)
+    bl1 = lp(s, c, F_BIAS, 2, 1, rb1, C_ACC_B, C_ACC_A, run, n, start)
+    lp_end(s, F_BIAS, run, start)
+    rest = both(s[S_REST] > 0.5, p[P_REST_BIAS] > 0.5)
+    motion = p[P_MOTION_BIAS] > 0.5
+    one, zero = 1.0 + 0.0 * h00, 0.0 * h00
+    # measurement residual e = y − H b and its model (H, W) for the case at hand
+    m0 = -v1 / ts + bl0 - (h00 * b0 + h01 * b1 + h02 * b2)
+    m1 = v0 / ts + bl1 - (h10 * b0 + h11 * b1 + h12 * b2)
+    m2 = -(h20 * b0 + h21 * b1 + h22 * b2)
+    e0 = where(rest, s[S_REST_G] - b0, m0)
+    e1 = where(rest, s[S_REST_G + 1] - b1, m1)
+    e2 = where(rest, s[S_REST_G + 2] - b2, m2)
+    H00, H01, H02 = where(rest, one, h00), where(rest, zero, h01), where(rest, zero, h02)
+    H10, H11, H12 = where(rest, zero, h10), where(rest, one, h11), where(rest, zero, h12)
+    H20, H21, H22 = where(rest, zero, h20), where(rest, zero, h21), where(rest, one, h22)
+    W0 = where(rest, c[C_WR] * one, c[C_WM] * one)
+    W1 = W0
+    W2 = where(rest, c[C_WR] * one, c[C_WV] * one)
+    update = either(rest, motion)
+    # P <- P + V (also without a measurement): the bias may drift
+    for i in range(3):
+        k = S_P + 4 * i
+        s[k] = where(s[k] < c[C_P0], s[k] + c[C_V], s[k])
+    P00, P01, P02 = s[S_P], s[S_P + 1], s[S_P + 2]
+    P10, P11, P12 = s[S_P + 3], s[S_P + 4], s[S_P + 5]
+    P20, P21, P22 = s[S_P + 6], s[S_P + 7], s[S_P + 8]
+    # disagreement clipped to ±bias_clip (also limits the first inclination step's harm)
+    cl = p[P_CLIP] * DEG
+    e0, e1, e2 = clip(e0, -cl, cl), clip(e1, -cl, cl), clip(e2, -cl, cl)
+    # A = P H^T, S = W + H P H^T, K = A S^-1
+    A00 = P00 * H00 + P01 * H01 + P02 * H02
+    A01 = P00 * H10 + P01 * H11 + P02 * H12
+    A02 = P00 * H20 + P01 * H21 + P02 * H22
+    A10 = P10 * H00 + P11 * H01 + P12 * H02
+    A11 = P10 * H10 + P11 * H11 + P12 * H12
+    A12 = P10 * H20 + P11 * H21 + P12 * H22
+    A20 = P20 * H00 + P21 * H01 + P22 * H02
+    A21 = P20 * H10 + P21 * H11 + P22 * H12
+    A22 = P20 * H20 + P21 * H21 + P22 * H22
+    S00 = W0 + H00 * A00 + H01 * A10 + H02 * A20
+    S01 = H00 * A01 + H01 * A11 + H02 * A21
+    S02 = H00 * A02 + H01 * A12 + H02 * A22
+    S10 = H10 * A00 + H11 * A10 + H12 * A20
+    S11 = W1 + H10 * A01 + H11 * A11 + H12 * A21
+    S12 = H10 * A02 + H11 * A12 + H12 * A22
+    S20 = H20 * A00 + H21 * A10 + H22 * A20
+    S21 = H20 * A01 + H21 * A11 + H22 * A21
+    S22 = W2 + H20 * A02 + H21 * A12 + H22 * A22
+    # S^-1 by cofactors
+    c00 = S11 * S22 - S12 * S21
+    c01 = S02 * S21 - S01 * S22
+    c02 = S01 * S12 - S02 * S11
+    c10 = S12 * S20 - S10 * S22
+    c11 = S00 * S22 - S02 * S20
+    c12 = S02 * S10 - S00 * S12
+    c20 = S10 * S21 - S11 * S20
+    c21 = S01 * S20 - S00 * S21
+    c22 = S00 * S11 - S01 * S10
+    det = S00 * c00 + S01 * c10 + S02 * c20
+    c00, c01, c02, c10, c11, c12, c20, c21, c22 = (c00 / det, c01 / det, c02 / det, c10 / det, c11 / det,
+                                                   c12 / det, c20 / det, c21 / det, c22 / det)
+    K00 = A00 * c00 + A01 * c10 + A02 * c20
+    K01 = A00 * c01 + A01 * c11 + A02 * c21
+    K02 = A00 * c02 + A01 * c12 + A02 * c22
+    K10 = A10 * c00 + A11 * c10 + A12 * c20
+    K11 = A10 * c01 + A11 * c11 + A12 * c21
+    K12 = A10 * c02 + A11 * c12 + A12 * c22
+    K20 = A20 * c00 + A21 * c10 + A22 * c20
+    K21 = A20 * c01 + A21 * c11 + A22 * c21
+    K22 = A20 * c02 + A21 * c12 + A22 * c22
+    # b <- clip(b + trust K e); the learned bias trust scales the increment (0: frozen)
+    nb0 = clip(b0 + bias_trust * (K00 * e0 + K01 * e1 + K02 * e2), -cl, cl)
+    nb1 = clip(b1 + bias_trust * (K10 * e0 + K11 * e1 + K12 * e2), -cl, cl)
+    nb2 = clip(b2 + bias_trust * (K20 * e0 + K21 * e1 + K22 * e2), -cl, cl)
+    # P <- P − K H P = P − K A^T
+    N00 = P00 - (K00 * A00 + K01 * A01 + K02 * A02)
+    N01 = P01 - (K00 * A10 + K01 * A11 + K02 * A12)
+    N02 = P02 - (K00 * A20 + K01 * A21 + K02 * A22)
+    N10 = P10 - (K10 * A00 + K11 * A01 + K12 * A02)
+    N11 = P11 - (K10 * A10 + K11 * A11 + K12 * A12)
+    N12 = P12 - (K10 * A20 + K11 * A21 + K12 * A22)
+    N20 = P20 - (K20 * A00 + K21 * A01 + K22 * A02)
+    N21 = P21 - (K20 * A10 + K21 * A11 + K22 * A12)
+    N22 = P22 - (K20 * A20 + K21 * A21 + K22 * A22)
+    s[S_BIAS], s[S_BIAS + 1], s[S_BIAS + 2] = where(update, nb0, b0), where(update, nb1, b1), where(update, nb2, b2)
+    s[S_P], s[S_P + 1], s[S_P + 2] = where(update, N00, P00), where(update, N01, P01), where(update, N02, P02)
+    s[S_P + 3], s[S_P + 4], s[S_P + 5] = where(update, N10, P10), where(update, N11, P11), where(update, N12, P12)
+    s[S_P + 6], s[S_P + 7], s[S_P + 8] = where(update, N20, P20), where(update, N21, P21), where(update, N22, P22)
+
+# ------------------------------------------------------------------ magnetometer
+@jit
+def mag_update(s, p, c, mx, my, mz, mag_trust):
+    ts = c[C_TS]
+    w, x, y, z = quat6(s)
+    m0, m1, m2 = qrot(w, x, y, z, mx, my, mz)   # the field in the 6D earth frame E_i
+    k = c[C_KMAG] + 0.0 * m0
+    if p[P_MAG_REJ] > 0.5:
+        # the field's norm and dip against the recording's own reference (decisions only)
+        g0, g1, g2 = nograd(m0), nograd(m1), nograd(m2)
+        norm = sqrt(g0 * g0 + g1 * g1 + g2 * g2 + 1e-300)
+        dip = -asin(g2 / norm)
+        if p[P_MAG_CUR_TAU] > 0.0:
+            run, n, start = lp_begin(s, F_MAG, p[P_MAG_CUR_TAU], ts)
+            norm_f = lp(s, c, F_MAG, 2, 0, norm, C_MAG_B, C_MAG_A, run, n, start)
+            dip_f = lp(s, c, F_MAG, 2, 1, dip, C_MAG_B, C_MAG_A, run, n, start)
+            lp_end(s, F_MAG, run, start)
+            norm, dip = norm_f, dip_f
+        kref = c[C_KMAGREF]
+        dip_th = p[P_MAG_DIP_TH] * DEG
+        ok = both(fabs(norm - s[S_MREF_N]) < p[P_MAG_NORM_TH] * s[S_MREF_N],
+                  fabs(dip - s[S_MREF_D]) < dip_th)
+        und_t = where(ok, s[S_MUND_T] + ts, 0.0 * norm)
+        settled = both(ok, und_t >= p[P_MAG_MIN_UND_T])
+        dist = where(ok, where(settled, 0.0 * norm, s[S_MAGDIST]), 1.0 + 0.0 * norm)
+        ref_n = where(settled, s[S_MREF_N] + kref * (norm - s[S_MREF_N]), s[S_MREF_N])
+        ref_d = where(settled, s[S_MREF_D] + kref * (dip - s[S_MREF_D]), s[S_MREF_D])
+        # a new field is accepted after it stayed steady for mag_new_time while turning
+        cand = both(fabs(norm - s[S_MCAND_N]) < p[P_MAG_NORM_TH] * s[S_MCAND_N],
+                    fabs(dip - s[S_MCAND_D]) < dip_th)
+        g = s[S_REST_G] * s[S_REST_G] + s[S_REST_G + 1] * s[S_REST_G + 1] + s[S_REST_G + 2] * s[S_REST_G + 2]
+        turning = sqrt(g + 1e-300) >= p[P_MAG_NEW_MIN_G] * DEG
+        cand_t = where(cand, where(turning, s[S_MCAND_T] + ts, s[S_MCAND_T]), 0.0 * norm)
+        cand_n = where(cand, s[S_MCAND_N] + kref * (norm - s[S_MCAND_N]), norm)
+        cand_d = where(cand, s[S_MCAND_D] + kref * (dip - s[S_MCAND_D]), dip)
+        accept = both(cand, both(dist > 0.5, either(cand_t >= p[P_MAG_NEW_T],
+                                                    both(ref_n == 0.0, cand_t >= p[P_MAG_NEW_FIRST_T]))))
+        s[S_MREF_N] = where(accept, cand_n, ref_n)
+        s[S_MREF_D] = where(accept, cand_d, ref_d)
+        s[S_MAGDIST] = where(accept, 0.0 * norm, dist)
+        s[S_MUND_T] = where(accept, p[P_MAG_MIN_UND_T] + 0.0 * norm, und_t)
+        s[S_MCAND_T], s[S_MCAND_N], s[S_MCAND_D] = cand_t, cand_n, cand_d
+        # rejection: no heading correction while disturbed, for at most mag_max_rejection_time,
+        # then a reduced gain; the allowance recovers at mag_rejection_factor × real time
+        disturbed = s[S_MAGDIST] > 0.5
+        within = s[S_MREJ_T] <= p[P_MAG_MAX_REJ_T]
+        k = where(disturbed, where(within, 0.0 * k, k / p[P_MAG_REJ_FACTOR]), k)
+        s[S_MREJ_T] = where(disturbed, where(within, s[S_MREJ_T] + ts, s[S_MREJ_T]),
+                            fmax(s[S_MREJ_T] - p[P_MAG_REJ_FACTOR] * ts, 0.0 * norm))
+    # fast initial convergence: gain at least 1/N over the first samples, until t > tau_mag
+    ki = s[S_KMINIT]
+    active = ki != 0.0
+    k = where(both(active, k < ki), ki + 0.0 * k, k)
+    ki_next = ki / (ki + 1.0)
+    s[S_KMINIT] = where(active, where(ki_next * p[P_TAU_MAG] < ts, 0.0 * ki, ki_next), ki)
+    # heading disagreement, wrapped to [-pi, pi]; the learned trust scales the gain
+    dis = atan2(m0, m1) - s[S_DELTA]
+    dis = where(dis > PI, dis - 2.0 * PI, where(dis < -PI, dis + 2.0 * PI, dis))
+    delta = s[S_DELTA] + mag_trust * k * dis
+    s[S_DELTA] = where(delta > PI, delta - 2.0 * PI, where(delta < -PI, delta + 2.0 * PI, delta))
