@@ -24,6 +24,7 @@ from torch import Tensor
 from torch.utils.data import DataLoader, Dataset, TensorDataset
 
 from . import so3
+from .losses import trust_labels
 from .sequence import ImuSequence
 
 
@@ -42,11 +43,15 @@ def sequence_tensors(seq: ImuSequence, axes: int, dtype=torch.float32) -> Dict[s
     else:
         valid = np.zeros(n, dtype=bool)
         rot = torch.eye(3, dtype=torch.float64).expand(n, 3, 3)
+    imu_t = torch.as_tensor(imu, dtype=dtype)
+    valid_t = torch.as_tensor(valid)
     return {
-        "imu": torch.as_tensor(imu, dtype=dtype),
+        "imu": imu_t,
         "dt": torch.as_tensor(seq.dt, dtype=dtype),
         "rot": rot.to(dtype).contiguous(),
-        "valid": torch.as_tensor(valid),
+        "valid": valid_t,
+        # targets of the backbone model's trust logits (whole-recording field reference)
+        "trust_label": trust_labels(imu_t, rot, valid_t),
     }
 
 

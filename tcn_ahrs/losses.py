@@ -115,3 +115,44 @@ def attitude_loss(nav_from_body: Tensor, nav_from_body_gt: Tensor, valid: Tensor
     est = nav_from_body[valid]
     e = so3.vee(nav_from_body_gt[valid].to(est.dtype).transpose(-1, -2) @ est)
     return F.smooth_l1_loss(e, torch.zeros_like(e), beta=huber_delta, reduction="mean")
+
+
+def trust_labels(imu: Tensor, nav_from_body: Tensor, valid: Tensor, acc_deg: float = 2.0,
+                 mag_deg: float = 3.0, mag_norm: float = 0.1) -> Tensor:
+    """Whether each sample's accelerometer and magnetometer can be trusted, judged against the
+    ground truth (the targets of the backbone's trust logits, :mod:`tcn_ahrs.model.residual`).
+
+    imu (N, C) raw (body frame; C = 6 or 9), nav_from_body (N, 3, 3) ground truth, valid (N,).
+    Returns (N, 2) in {0., 1.}: column 0 = the measured specific force points within ``acc_deg``
+    of the true up (R^T e_z); column 1 = the field's horizontal direction in the navigation frame
+    lies within ``mag_deg`` of the recording's own prevailing direction and its norm within
+    ``mag_norm`` (relative) of the recording's median (always 1 without a magnetometer). The
+    prevailing direction is the circular mean over the samples near the first circular mean (a
+    disturbance that lasts less than half the recording does not move it). Invalid samples: 0."""
+    rot = nav_from_body.to(torch.float64)
+    acc = imu[:, 3:6].to(torch.float64)
+    up_b = rot[:, 2, :]  # R^T e_z = third row of R
+    cos_a = (acc * up_b).sum(-1) / acc.norm(dim=-1).clamp_min(1e-9)
+    acc_ok = cos_a > torch.cos(torch.tensor(acc_deg * torch.pi / 180.0, dtype=torch.float64))
+    mag_ok = torch.ones_like(acc_ok)
+    if imu.shape[-1] >= 9 and bool(valid.any()):
+        m = (rot @ imu[:, 6:9].to(torch.float64).unsqueeze(-1)).squeeze(-1)
+        head = torch.atan2(m[:, 0], m[:, 1])
+        norm = m.norm(dim=-1)
+        v = valid.bool()
+        ref = torch.atan2(torch.sin(head[v]).mean(), torch.cos(head[v]).mean())
+        near = v & (torch.remainder(head - ref + torch.pi, 2 * torch.pi) - torch.pi).abs().lt(torch.pi / 18)
+        if bool(near.any()):
+            ref = torch.atan2(torch.sin(head[near]).mean(), torch.cos(head[near]).mean())
+        err = (torch.remainder(head - ref + torch.pi, 2 * torch.pi) - torch.pi).abs()
+        med = norm[v].median()
+        mag_ok = (err < mag_deg * torch.pi / 180.0) & ((norm / med - 1.0).abs() < mag_norm)
+    out = torch.stack([acc_ok, mag_ok], -1).to(torch.float32)
+    return out * valid.to(torch.float32).unsqueeze(-1)
+
+
+def trust_loss(logits: Tensor, labels: Tensor, valid: Tensor) -> Tensor:
+    """Binary cross-entropy of trust logits (B, N) against labels (B, N) on valid samples."""
+    v = valid.to(logits.dtype)
+    bce = F.binary_cross_entropy_with_logits(logits, labels.to(logits.dtype), reduction="none")
+    return (bce * v).sum() / v.sum().clamp_min(1.0)

@@ -24,7 +24,7 @@ from . import so3
 from .checkpoint import (AtomicCheckpointIO, CheckpointError, check_layout, layout_meta,
                          load_checkpoint)
 from .data import AHRSDataModule, augment
-from .losses import attitude_loss, increment_loss
+from .losses import attitude_loss, increment_loss, trust_loss
 from .model.ahrs import LearnedAHRS
 from .cli import output_dir
 from .validate import check_keys, check_number
@@ -94,6 +94,10 @@ class AHRSModule(pl.LightningModule):
         out = self.model(imu, w["dt"], w["rot"][:, 0])
         loss = increment_loss(out["omega"], w["dt"], w["rot"], w["valid"], self.loss_js,
                               self.hparams.huber_delta)
+        if self.model.backbone is not None:  # the trust logits: separate network, own loss
+            loss = loss + trust_loss(out["acc_trust_logit"], w["trust_label"][..., 0], w["valid"])
+            if "mag_trust_logit" in out:
+                loss = loss + trust_loss(out["mag_trust_logit"], w["trust_label"][..., 1], w["valid"])
         self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True,
                  batch_size=starts.shape[0], sync_dist=True)
         return loss

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from .. import so3
-from ..conventions import NETWORK_DTYPE
+from ..conventions import NETWORK_DTYPE, STATE_DTYPE
 from ..checkpoint import CheckpointError, model_from_checkpoint
 from ..model.ahrs import LearnedAHRS
 from ..sequence import ImuSequence
@@ -26,7 +26,10 @@ def model_input(model: LearnedAHRS, seq: ImuSequence, device, what: str = "model
             f"{seq.source}: field 'mag': the {what} (variant '{model.variant}') expects 9-axis input but "
             f"recording {seq.name!r} has no magnetometer; use a 6-axis checkpoint")
     parts = [seq.gyro, seq.accel] + ([seq.mag] if model.axes == 9 else [])
-    return torch.as_tensor(np.concatenate(parts, 1), dtype=NETWORK_DTYPE, device=device)[None]
+    # the backbone model filters the raw float64 readings (its networks cast for themselves), so
+    # its untrained form equals the backbone estimator to round-off
+    dtype = STATE_DTYPE if getattr(model, "backbone", None) is not None else NETWORK_DTYPE
+    return torch.as_tensor(np.concatenate(parts, 1), dtype=dtype, device=device)[None]
 
 
 class LearnedEstimator:
@@ -72,7 +75,7 @@ class LearnedEstimator:
                           f"at {trained:.4g} Hz: its networks' time scale and rest window assume {trained:.4g} Hz "
                           "(resample the recording, or train at its rate)", stacklevel=2)
         imu = model_input(self.model, seq, self.device, f"model {self.ckpt_path or ''}")
-        dt = torch.as_tensor(seq.dt, dtype=torch.float32, device=self.device)[None]
+        dt = torch.as_tensor(seq.dt, dtype=imu.dtype, device=self.device)[None]
         start = check_number(init_index, "init_index", int, 0, high=len(seq))
         if init_quat is None:
             q0 = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)

@@ -32,14 +32,15 @@ from ..conventions import STATE_DTYPE
 from .calibration import Calibration
 from .closed_loop import ClosedLoopFilter
 from .ecf import OpenLoopECF
+from .residual import RESIDUAL_KEYS, BackboneLoop, ResidualCalibration
 
 # Every key a model config may have (a misspelt key is an error, see from_config).
 MODEL_KEYS = {
     "variant", "axes", "gyro_net", "acc_net", "mag_net", "gyro_input", "use_acc_term",
     "use_mag_term", "ecf", "preintegration", "init_gain", "error_scale", "tcn",
-    "loop", "trust", "closed_loop",
+    "loop", "trust", "closed_loop", "residual",
 }
-LOOPS = ("open", "closed")
+LOOPS = ("open", "closed", "backbone")
 CLOSED_LOOP_KEYS = {"acc_gain", "mag_gain", "bias_gain", "rest_time_constant", "rest_time", "rest_gyro", "rest_acc",
                     "acc_reject", "mag_min", "mag_max"}
 TCN_KEYS = {"channels", "kernel_size", "dilations", "dropout"}
@@ -57,18 +58,34 @@ class LearnedAHRS(nn.Module):
                  preintegration: str = "two_pass", init_gain: float = 0.05,
                  error_scale: Optional[Mapping[str, float]] = None, tcn: Optional[Mapping] = None,
                  loop: str = "open", trust: Optional[bool] = None,
-                 closed_loop: Optional[Mapping[str, float]] = None):
+                 closed_loop: Optional[Mapping[str, float]] = None,
+                 residual: Optional[Mapping[str, Any]] = None):
         super().__init__()
         if loop not in LOOPS:
             raise ValueError(f"model config: loop {loop!r}: expected one of {LOOPS}")
         self.axes = int(axes)
         self.variant = str(variant)
-        self.loop = str(loop) if ecf else "open"
+        self.loop = str(loop) if (ecf or loop == "backbone") else "open"
         trust = (self.loop == "closed") if trust is None else bool(trust)
-        self.calibration = Calibration(self.axes, gyro_net, acc_net, mag_net, gyro_input,
-                                       dict(error_scale or {}), dict(tcn or {}), trust=trust)
         self.ecf = None
         self.closed = None
+        self.backbone = None
+        if self.loop == "backbone":  # learned residuals on the VQF-grade backbone (model/residual.py)
+            res = dict(residual or {})
+            bad = set(res) - RESIDUAL_KEYS
+            if bad:
+                raise ValueError(f"model.residual config: unknown key(s) {sorted(bad)}; "
+                                 f"expected a subset of {sorted(RESIDUAL_KEYS)}")
+            self.calibration = ResidualCalibration(self.axes, dict(tcn or {}), float(res.get("gyro_scale", 0.1)))
+            self.backbone = BackboneLoop(use_mag=use_mag_term and self.axes == 9,
+                                         acc_trust_scale=float(res.get("acc_trust_scale", 1.0)),
+                                         mag_trust_scale=float(res.get("mag_trust_scale", 1.0)),
+                                         bias_trust_scale=float(res.get("bias_trust_scale", 1.0)),
+                                         trust_max=float(res.get("trust_max", 2.0)),
+                                         backbone=dict(res.get("backbone") or {}))
+            return
+        self.calibration = Calibration(self.axes, gyro_net, acc_net, mag_net, gyro_input,
+                                       dict(error_scale or {}), dict(tcn or {}), trust=trust)
         cl = dict(closed_loop or {})
         bad = set(cl) - CLOSED_LOOP_KEYS
         if bad:
@@ -95,6 +112,8 @@ class LearnedAHRS(nn.Module):
             raise ValueError(f"model.tcn config: unknown key(s) {sorted(bad)}; expected a subset of {sorted(TCN_KEYS)}")
         if cfg.get("closed_loop") is not None:
             cfg["closed_loop"] = dict(cfg["closed_loop"])
+        if cfg.get("residual") is not None:
+            cfg["residual"] = dict(cfg["residual"])
         for k in ("channels", "dilations"):
             if k in tcn:
                 tcn[k] = list(tcn[k])
@@ -181,6 +200,8 @@ class LearnedAHRS(nn.Module):
         own estimate). ``omega`` is then the applied rate ω̂_gyr − b + w."""
         if self.closed is not None:
             return self._run_closed(imu, dt, r0, start)
+        if self.backbone is not None:
+            return self._run_backbone(imu, dt, r0, start)
         cal = self.calibration(imu)
         out = dict(cal)
         omega = cal["gyro"].clone()
@@ -214,6 +235,24 @@ class LearnedAHRS(nn.Module):
         out.update(innov)
         out["omega"] = omega
         out["rot"] = torch.cat(rot_parts, 1)[:, :n]
+        return out
+
+    def _run_backbone(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int) -> Dict[str, Tensor]:
+        """The backbone with the learned residuals from sample ``start`` (batch of one)."""
+        if imu.shape[0] != 1:
+            raise ValueError("run_sequence with the backbone: one recording at a time (batch of one)")
+        n = imu.shape[1]
+        cal = self.calibration(imu)
+        q0 = so3.matrix_to_quat(r0[0].to(torch.float64)).cpu().numpy()
+        res = self.backbone.run(cal, imu, dt, q0, start)
+        out = dict(cal)
+        rot = so3.quat_to_matrix(res["quat"]).to(imu.device)[None]
+        out["rot"] = torch.cat([r0.to(torch.float64).unsqueeze(1).expand(-1, start, 3, 3), rot], 1)[:, :n]
+        out["omega"] = cal["gyro"]
+        out["gyro_bias"] = res["gyro_bias"].to(imu.device)[None]
+        out["rest"] = torch.cat([torch.zeros(start, dtype=torch.float64), res["rest"]])[None].to(imu.device)
+        for k in ("acc_trust", "mag_trust"):
+            out[k] = res[k].to(imu.device)
         return out
 
     def _run_closed(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int) -> Dict[str, Tensor]:

@@ -1,0 +1,104 @@
+"""Learned residuals on the backbone (model.loop=backbone): the untrained model is the backbone,
+the residuals stay within their bounds, and the trust labels read the ground truth correctly."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+from tcn_ahrs import so3
+from tcn_ahrs.estimators.learned import LearnedEstimator
+from tcn_ahrs.filters import backbone as bb
+from tcn_ahrs.filters.common import magnetic_from_nav
+from tcn_ahrs.losses import trust_labels
+from tcn_ahrs.model.ahrs import LearnedAHRS
+from tcn_ahrs.sequence import ImuSequence
+
+CONF = Path(__file__).resolve().parents[1] / "conf" / "model"
+
+
+def residual_model(axes: int, **residual) -> LearnedAHRS:
+    cfg = OmegaConf.merge(OmegaConf.load(CONF / "ahrs.yaml"), OmegaConf.load(CONF / "residual.yaml"))
+    cfg = OmegaConf.to_container(cfg, resolve=False)
+    cfg.pop("defaults")
+    cfg.update(axes=axes, variant=f"residual{axes}")
+    cfg["residual"].update(residual)
+    return LearnedAHRS.from_config(cfg)
+
+
+def _seq(n=600, seed=0):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.01
+    gyr = np.stack([0.3 * np.sin(0.7 * t), 0.2 * np.cos(1.3 * t), 0.5 * np.sin(0.4 * t + 1)], -1)
+    gyr += 0.01 + 0.002 * rng.standard_normal((n, 3))
+    acc = np.array([0.3, -0.2, 9.7]) + 0.3 * rng.standard_normal((n, 3))
+    mag = np.array([5.0, 20.0, -40.0]) + 0.5 * rng.standard_normal((n, 3))
+    return ImuSequence(name="s", source="test", time=t, gyro=gyr, accel=acc, mag=mag, rate=100.0)
+
+
+def test_untrained_model_is_the_backbone():
+    """Zero-initialised output layers: gyro residual 0, trust 1 -> exactly the backbone run from
+    the same start (9D in the magnetic frame of the start, mapped back; and 6D)."""
+    seq = _seq()
+    q0 = np.array([0.9, 0.1, -0.2, 0.3]) / np.linalg.norm([0.9, 0.1, -0.2, 0.3])
+    k = 50
+    for axes in (9, 6):
+        model = residual_model(axes).eval()
+        got = LearnedEstimator(model=model, name="untrained").run(seq if axes == 9 else seq.without_mag(), q0, k).quat
+        mag = seq.mag[k:] if axes == 9 else None
+        q = q0
+        m = None
+        if axes == 9:
+            m = magnetic_from_nav(torch.as_tensor(q0), torch.as_tensor(seq.mag[k]))
+            q = so3.quat_mul(m, torch.as_tensor(q0)).numpy()
+        ref = torch.as_tensor(bb.run(seq.gyro[k:], seq.accel[k:], mag, seq.dt[k:], q0=q)["quat"])
+        if m is not None:
+            ref = so3.quat_mul(so3.quat_conj(m).expand_as(ref), ref)
+        assert np.abs(np.abs((got[k:] * ref.numpy()).sum(-1)) - 1.0).max() < 1e-12
+        assert np.allclose(got[:k], q0)
+
+
+def test_residuals_are_bounded():
+    model = residual_model(9, gyro_scale=0.05)
+    with torch.no_grad():
+        for p in model.calibration.parameters():
+            p.normal_(0.0, 10.0)  # any weights
+    imu = torch.randn(2, 300, 9) * 10
+    out = model.calibration(imu)
+    assert out["gyro_error"].abs().max() <= 0.05
+    tr = model.backbone.trusts(out)
+    for k in ("acc_trust", "mag_trust"):
+        assert tr[k].min() >= 0.0 and tr[k].max() <= 2.0
+    assert model.num_parameters() > 0
+
+
+def test_trust_scales_zero_is_integration_of_the_corrected_gyro():
+    seq = _seq()
+    model = residual_model(9, acc_trust_scale=0.0, mag_trust_scale=0.0, bias_trust_scale=0.0).eval()
+    q0 = np.array([1.0, 0.0, 0.0, 0.0])
+    got = LearnedEstimator(model=model, name="m").run(seq, q0, 0).quat
+    pad = lambda a: torch.as_tensor(np.concatenate([np.zeros_like(a[:1]), a]))[None]  # noqa: E731
+    rot = so3.integrate(torch.eye(3, dtype=torch.float64)[None], pad(seq.gyro), pad(seq.dt))[0, 1:]
+    ref = so3.matrix_to_quat(rot).numpy()
+    assert np.abs(np.abs((got * ref).sum(-1)) - 1.0).max() < 1e-9
+
+
+def test_trust_labels_from_ground_truth():
+    n = 200
+    rot = so3.quat_to_matrix(so3.quat_normalize(torch.randn(n, 4, dtype=torch.float64)))
+    up_b = rot[:, 2, :]
+    field_nav = torch.tensor([0.0, 20.0, -40.0], dtype=torch.float64)
+    mag = (rot.transpose(-1, -2) @ field_nav).clone()
+    acc = 9.81 * up_b.clone()
+    acc[:20] += torch.tensor([3.0, 0.0, 0.0], dtype=torch.float64)  # external acceleration
+    mag[150:170] = (rot[150:170].transpose(-1, -2) @ torch.tensor([15.0, 15.0, -40.0], dtype=torch.float64))
+    valid = torch.ones(n, dtype=torch.bool)
+    valid[-5:] = False
+    lab = trust_labels(torch.cat([torch.zeros(n, 3, dtype=torch.float64), acc, mag], -1), rot, valid)
+    tilt = torch.rad2deg(torch.acos(((acc / acc.norm(dim=-1, keepdim=True)) * up_b).sum(-1).clamp(-1, 1)))
+    assert torch.equal(lab[:-5, 0].bool(), (tilt < 2.0)[:-5])
+    assert lab[:20, 0].sum() < 20 and lab[20:150, 0].all()
+    assert not lab[150:170, 1].any() and lab[:150, 1].all() and lab[170:-5, 1].all()
+    assert not lab[-5:].any()
