@@ -4,10 +4,13 @@
     python scripts/benchmark.py accuracy data=broad [data.root=DIR] [ckpt=PATH] [tune=true]
     python scripts/benchmark.py accuracy data=euroc data.split=val
     python scripts/benchmark.py speed ...
+    python scripts/benchmark.py transfer [transfer.ckpts={label: path}] [transfer.datasets=[broad,...]]
 
 accuracy: every method incl. the PyPI peers on one dataset through the evaluation runner
           (tcn_ahrs.compare.benchmark_accuracy_main; same code as scripts/compare.py).
 speed:    tcn_ahrs.bench.main(cfg) (imported only in that mode).
+transfer: tcn_ahrs.transfer.transfer_main(cfg): every checkpoint on every dataset it can read, on
+          recordings it never saw, beside the backbone and the classical filters.
 Config: conf/benchmark.yaml. Output: runs/benchmark/<mode>/<data>/<time> unless out=DIR.
 """
 import sys
@@ -20,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tcn_ahrs.cli import user_errors  # noqa: E402
 
-MODES = ("accuracy", "speed")
+MODES = ("accuracy", "speed", "transfer")
 
 
 def _mode_from_argv(argv) -> None:
@@ -40,6 +43,10 @@ def main(cfg: DictConfig) -> None:
         from tcn_ahrs.compare import benchmark_accuracy_main
 
         benchmark_accuracy_main(cfg)
+    elif mode == "transfer":
+        from tcn_ahrs.transfer import transfer_main
+
+        transfer_main(cfg)
     elif mode == "speed":
         from tcn_ahrs.bench import main as speed_main
 

@@ -253,3 +253,24 @@ def tuning_clips(seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.
                        "duration_s": round(c.duration, 3), "n_samples": len(c),
                        "n_scored": int(c.scored().sum())})
     return clips, record
+
+
+# the backbone's knobs that differ most between IMUs and motions (VQF's defaults first): the
+# inclination time constant, bias estimation in motion (VQF 6D on TUM VI's calibrated IMU: 7.2 deg
+# with it, 2.4 without), the bias bound (EuRoC's 4.5 deg/s bias lies beyond VQF's 2 deg/s) and
+# the heading time constant
+BACKBONE_GRID = {"tau_acc": [3.0, 10.0], "motion_bias": [1.0, 0.0], "bias_clip": [2.0, 8.0], "tau_mag": [9.0, 20.0]}
+
+
+def tune_backbone(sequences: Sequence[ImuSequence], axes: int,
+                  grid: Optional[Mapping[str, Sequence]] = None) -> Tuple[Dict[str, float], List[dict]]:
+    """The backbone's parameters for a learned model, chosen on its TRAINING recordings only
+    (the untrained backbone's mean AAE over :data:`BACKBONE_GRID`; ``tau_mag`` only at 9 axes)."""
+    from .estimators.backbone import Backbone
+
+    g = dict(grid or BACKBONE_GRID)
+    if axes == 6:
+        g.pop("tau_mag", None)
+        sequences = [s.without_mag() if s.has_mag else s for s in sequences]
+    best, table = tune_grid(Backbone(axes=axes), [s for s in sequences if s.quat is not None], g)
+    return {k: float(v) for k, v in best.items()}, table

@@ -23,32 +23,38 @@ from .registry import register
 @dataclass
 class Backbone(ClassicalEstimator):
     """VQF's structure and defaults (Laidig & Seel 2023): ``tau_acc`` s (inclination),
-    ``tau_mag`` s (heading), bias estimation at rest and in motion, magnetic disturbance rejection
-    against the recording's own field. Any other :class:`~tcn_ahrs.kernels.backbone.BackboneParams`
-    field can be set through ``extra`` (a dict). Signals: ``gyro_bias`` (N, 3) rad/s, ``rest``,
+    ``tau_mag`` s (heading), bias estimation at rest and in motion (``bias_clip`` °/s), magnetic
+    disturbance rejection against the recording's own field; the fields are
+    :class:`~tcn_ahrs.kernels.backbone.BackboneParams`'s, any other one through ``extra`` (a dict). Signals: ``gyro_bias`` (N, 3) rad/s, ``rest``,
     ``mag_disturbed`` (N,)."""
 
     tau_acc: float = 3.0  # s
     tau_mag: float = 9.0  # s
+    motion_bias: float = 1.0  # 1: bias estimation in motion, 0: off
+    rest_bias: float = 1.0  # 1: rest detection and bias estimation at rest, 0: off
+    bias_clip: float = 2.0  # deg/s, bound of the bias estimate
+    mag_rejection: float = 1.0  # 1: magnetic disturbance rejection, 0: off
     extra: object = None  # dict of further BackboneParams fields
 
     method: ClassVar[str] = "backbone"
-    tunable: ClassVar[Sequence[str]] = ("tau_acc", "tau_mag")
-    default_grid: ClassVar[Dict[str, list]] = {"tau_acc": [1.0, 3.0, 6.0], "tau_mag": [3.0, 9.0, 20.0]}
+    tunable: ClassVar[Sequence[str]] = ("tau_acc", "tau_mag", "motion_bias", "bias_clip")
+    default_grid: ClassVar[Dict[str, list]] = {"tau_acc": [1.0, 3.0, 10.0], "tau_mag": [3.0, 9.0, 20.0],
+                                               "motion_bias": [1.0, 0.0], "bias_clip": [2.0, 8.0]}
 
     def _filter(self, gyro, accel, dt, q0, mag, p):
-        ta, tm = torch.as_tensor(p["tau_acc"]), torch.as_tensor(p["tau_mag"])
-        shape = torch.broadcast_shapes(ta.shape, tm.shape, gyro.shape[:1])  # () / (R,) / (P, R)
-        ta, tm = ta.expand(shape).reshape(-1), tm.expand(shape).reshape(-1)
         r = gyro.shape[0]
-        n_sets = ta.numel() // r
+        names = [k for k in ("tau_acc", "tau_mag", "motion_bias", "rest_bias", "bias_clip", "mag_rejection")]
+        vals = {k: torch.as_tensor(p[k]) for k in names}
+        shape = torch.broadcast_shapes(*(v.shape for v in vals.values()), gyro.shape[:1])  # () / (R,) / (P, R)
+        vals = {k: v.expand(shape).reshape(-1) for k, v in vals.items()}
+        n_sets = vals["tau_acc"].numel() // r
         g, a, d, q = (x.cpu().numpy() for x in (gyro, accel, dt, q0))
         m = None if mag is None else mag.cpu().numpy()
         extra = dict(p.get("extra") or {})
         quat, bias, rest, dist = [], [], [], []
         for k in range(n_sets * r):
             i = k % r
-            params = bb.BackboneParams.from_mapping({**extra, "tau_acc": float(ta[k]), "tau_mag": float(tm[k])})
+            params = bb.BackboneParams.from_mapping({**extra, **{n: float(v[k]) for n, v in vals.items()}})
             out = bb.run(g[i], a[i], None if m is None else m[i], d[i], params, q0=q[i])
             quat.append(out["quat"])
             bias.append(out["gyro_bias"])

@@ -1,0 +1,156 @@
+"""The cross-dataset matrix: every checkpoint on every dataset it can read, on recordings it never
+saw, beside the backbone and the classical filters on the same recordings
+(``python scripts/benchmark.py transfer``).
+
+Which recordings a cell holds: on another dataset, all of that dataset's training recordings,
+whole (``trainval``: none was seen by the checkpoint); on the checkpoint's own dataset, its
+visible test recordings (``test``) when ``../shared`` has any, else the cell is left out (the
+checkpoint saw those recordings: its own folds are the crossval tables); on the simulator, its
+test split. A 6-axis checkpoint reads every dataset (without the magnetometer), a 9-axis one only
+those with a magnetometer.
+
+Each cell reports the learned model's mean AAE and inclination, the same for the backbone and the
+best classical filter (the lowest mean AAE among ``baselines``), and ``never_worse``: learned ≤
+best classical in both. Output: ``transfer.json`` and ``transfer.md`` in ``out``.
+"""
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Optional, Sequence
+
+from .checkpoint import checkpoint_meta, load_checkpoint
+from .estimators import registry
+from .evaluate.runner import evaluate, jsonable
+
+DATASETS = ("broad", "euroc", "tumvi", "oxiod", "simulated")
+BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick")
+METRICS = ("aae_deg", "inclination_deg")
+
+
+def cell_recordings(data_cfg: Mapping, own: bool) -> Optional[str]:
+    """The split a checkpoint is scored on: ``test`` on its own dataset (None when empty), the
+    simulator's ``test``, another dataset's ``trainval``."""
+    name = str(data_cfg["name"])
+    if name == "simulated":
+        return "test"
+    if own:
+        return "test" if list(data_cfg.get("test") or []) else None
+    return "trainval"
+
+
+def score_cell(ckpt: str, label: str, seqs, axes: int, baselines: Sequence[str]) -> Dict[str, Any]:
+    """One cell: the checkpoint and the baselines on ``seqs`` through the evaluation runner."""
+    ests = [registry.build("learned", ckpt=ckpt, label=label)]
+    for b in baselines:
+        try:
+            m = registry.get(b)
+            ests.append(registry.build(b, axes if axes in m.axes else m.axes[0]))
+        except Exception as e:  # noqa: BLE001 - a missing peer must not lose the cell
+            warnings.warn(f"transfer: baseline {b!r} unavailable, skipped: {e}")
+    res = evaluate(ests, seqs, plots=False, trajectories=False, axes=axes)
+    means = {e.name: {k: res["methods"][e.name]["mean"].get(k) for k in METRICS} for e in ests}
+    learned = means.pop(label)
+    classical = {k: v for k, v in means.items() if v["aae_deg"] is not None}
+    best = min(classical, key=lambda k: classical[k]["aae_deg"]) if classical else None
+    best_incl = min((v["inclination_deg"] for v in classical.values() if v["inclination_deg"] is not None),
+                    default=None)
+    backbone = next((v for k, v in means.items() if k.startswith("backbone")), None)
+    never_worse = (learned["aae_deg"] is not None and best is not None
+                   and learned["aae_deg"] <= classical[best]["aae_deg"]
+                   and (best_incl is None or learned["inclination_deg"] <= best_incl))
+    return {"learned": learned, "backbone": backbone, "best": best, "best_metrics": classical.get(best),
+            "best_inclination_deg": best_incl, "never_worse": bool(never_worse), "all": means,
+            "recordings": [s.name for s in seqs]}
+
+
+def transfer(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], baselines: Sequence[str] = BASELINES,
+             out: Optional[Path] = None, verbose: bool = True) -> Dict[str, Any]:
+    """The matrix over ``ckpts`` {label: path} x ``data_cfgs`` {name: data config}."""
+    from .datasets import load_split
+
+    table: Dict[str, Dict[str, Any]] = {}
+    for label, path in ckpts.items():
+        meta = checkpoint_meta(load_checkpoint(path), path)
+        axes, own = int(meta["layout"]["axes"]), str(meta.get("data", ""))
+        row: Dict[str, Any] = {"axes": axes, "trained_on": own}
+        for name, cfg in data_cfgs.items():
+            if axes == 9 and int(cfg.get("axes", 9)) != 9:
+                continue  # no magnetometer there
+            split = cell_recordings(cfg, own == name)
+            if split is None:
+                row[name] = {"skipped": "own dataset without a visible test split: see its crossval folds"}
+                continue
+            cfg = dict(cfg)
+            cfg["fold"] = None
+            seqs = [s for s in load_split(cfg, split) if s.quat is not None and s.scored().any()]
+            if axes == 6:
+                seqs = [s.without_mag() if s.has_mag else s for s in seqs]
+            if not seqs:
+                row[name] = {"skipped": f"no scored recordings in split {split!r}"}
+                continue
+            cell = score_cell(path, label, seqs, axes, baselines)
+            cell["split"] = split
+            row[name] = cell
+            if verbose:
+                l, b = cell["learned"], cell["best_metrics"] or {}
+                print(f"{label} on {name} ({split}, {len(seqs)} rec.): learned {l['aae_deg']:.2f}/"
+                      f"{l['inclination_deg']:.2f}, best classical {cell['best']} {b.get('aae_deg', float('nan')):.2f}"
+                      f" (incl. {cell['best_inclination_deg']:.2f})", flush=True)
+        table[label] = row
+    result = {"matrix": table, "baselines": list(baselines), "metrics": list(METRICS)}
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "transfer.json").write_text(json.dumps(jsonable(result), indent=1))
+        (out / "transfer.md").write_text(markdown(result))
+    return result
+
+
+def markdown(result: Mapping[str, Any]) -> str:
+    """The matrix as a table: each cell ``learned AAE (incl.) | best classical AAE (incl.)``."""
+    names = [d for d in DATASETS if any(d in row for row in result["matrix"].values())]
+    lines = ["| checkpoint | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    for label, row in result["matrix"].items():
+        cells = []
+        for d in names:
+            c = row.get(d)
+            if c is None:
+                cells.append("–")
+            elif "skipped" in c:
+                cells.append("(own data)")
+            else:
+                l, b, bb = c["learned"], c["best_metrics"] or {}, c["backbone"] or {}
+                mark = "" if c["never_worse"] else " ✗"
+                cells.append(f"{l['aae_deg']:.2f} ({l['inclination_deg']:.2f}) / {c['best']} "
+                             f"{b.get('aae_deg', float('nan')):.2f} ({c['best_inclination_deg']:.2f}); "
+                             f"backbone {bb.get('aae_deg', float('nan')):.2f}{mark}")
+        lines.append(f"| {label} ({row['axes']}-axis, {row['trained_on']}) | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append("Cell: learned mean AAE (inclination) / best classical filter by AAE on the same recordings "
+                 "(lowest inclination of any classical filter); ✗ = the learned model is worse in either.")
+    return "\n".join(lines) + "\n"
+
+
+def transfer_main(cfg) -> Dict[str, Any]:
+    """``scripts/benchmark.py transfer``: ``transfer.ckpts`` {label: path} (default: every
+    ``checkpoints/*.ckpt``), ``transfer.datasets`` (conf/data names), ``transfer.baselines``."""
+    from omegaconf import OmegaConf
+
+    conf = Path(__file__).resolve().parents[1] / "conf" / "data"
+    t = OmegaConf.to_container(cfg.get("transfer") or {}, resolve=True)
+    ckpts = t.get("ckpts") or {p.stem: str(p) for p in sorted(Path("checkpoints").glob("*.ckpt"))}
+    datasets = list(t.get("datasets") or DATASETS)
+    data_cfgs: Dict[str, Mapping] = {}
+    for d in datasets:
+        c = OmegaConf.to_container(OmegaConf.load(conf / f"{d}.yaml"), resolve=True)
+        if d != "simulated" and not Path(c["root"]).is_dir():
+            warnings.warn(f"transfer: {d} data not found at {c['root']}, skipped")
+            continue
+        data_cfgs[d] = c
+    out = Path(cfg.get("out") or "runs/benchmark/transfer")
+    res = transfer(ckpts, data_cfgs, list(t.get("baselines") or BASELINES), out)
+    print(markdown(res))
+    print(f"results in {out}")
+    return res

@@ -1,0 +1,43 @@
+"""The cross-dataset matrix (tcn_ahrs.transfer): which recordings a cell holds, and one real
+cell end to end on the simulator with an untrained residual checkpoint (= the backbone)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from tcn_ahrs.checkpoint import atomic_save, layout_meta
+from tcn_ahrs.transfer import cell_recordings, markdown, transfer
+
+from test_residual import residual_model
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+
+
+def test_cell_recordings():
+    assert cell_recordings({"name": "broad", "test": ["05"]}, own=True) == "test"
+    assert cell_recordings({"name": "euroc", "test": []}, own=True) is None
+    assert cell_recordings({"name": "euroc", "test": ["MH_02"]}, own=False) == "trainval"
+    assert cell_recordings({"name": "simulated"}, own=True) == "test"
+
+
+def test_transfer_cell_on_the_simulator(tmp_path):
+    model = residual_model(9)
+    cfg = OmegaConf.to_container(OmegaConf.load(CONF / "model" / "residual.yaml"), resolve=False)
+    path = tmp_path / "untrained.ckpt"
+    state = {f"model.{k}": v for k, v in model.state_dict().items()}
+    model_cfg = {k: v for k, v in cfg.items() if k != "defaults"}
+    model_cfg.update(axes=9, variant="residual9")
+    atomic_save({"state_dict": state, "tcn_ahrs": layout_meta(model_cfg, 9, "broad", 100.0)}, path)
+    sim = OmegaConf.to_container(OmegaConf.load(CONF / "data" / "simulated.yaml"), resolve=True)
+    sim["splits"]["test"].update(count=1, duration=20.0)
+    res = transfer({"untrained": str(path)}, {"simulated": sim}, ["raw", "backbone"], tmp_path / "out", verbose=False)
+    cell = res["matrix"]["untrained"]["simulated"]
+    assert cell["split"] == "test" and cell["recordings"]
+    # the untrained model is the backbone: equal scores, so never worse than it
+    assert np.isclose(cell["learned"]["aae_deg"], cell["backbone"]["aae_deg"], atol=1e-6)
+    assert cell["never_worse"] == (cell["learned"]["aae_deg"] <= cell["best_metrics"]["aae_deg"]
+                                   and cell["learned"]["inclination_deg"] <= cell["best_inclination_deg"])
+    md = (tmp_path / "out" / "transfer.md").read_text()
+    assert "untrained (9-axis, broad)" in md and md == markdown(res)
