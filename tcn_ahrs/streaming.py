@@ -212,6 +212,9 @@ class CompiledStreaming:
     def __init__(self, model: torch.nn.Module, rate_hz: Optional[float] = None):
         if not AVAILABLE:
             raise ImportError("CompiledStreaming needs numba (pip install -e '.[fast]')")
+        if getattr(model, "backbone", None) is not None:
+            raise ValueError("CompiledStreaming runs the learned closed loop (model.loop=closed); a model on the "
+                             "backbone (model.loop=backbone) is run by scripts/evaluate.py for now")
         from .export import ClosedLoopStreaming
 
         meta: Mapping[str, Any] = {"rate_hz": rate_hz}

@@ -102,3 +102,13 @@ def test_trust_labels_from_ground_truth():
     assert lab[:20, 0].sum() < 20 and lab[20:150, 0].all()
     assert not lab[150:170, 1].any() and lab[:150, 1].all() and lab[170:-5, 1].all()
     assert not lab[-5:].any()
+
+
+def test_export_refuses_the_backbone_model_with_a_clear_error(tmp_path):
+    import pytest
+
+    from tcn_ahrs.export import ExportError, export_batch
+
+    with pytest.raises(ExportError, match="backbone"):
+        export_batch(residual_model(9).eval(), tmp_path / "m.pt")
+    assert not (tmp_path / "m.pt").exists()

@@ -143,6 +143,10 @@ def _script(module: nn.Module, freeze: bool = True):
 
 def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str):
     model = model.eval()
+    if getattr(model, "backbone", None) is not None:
+        raise ExportError("a model on the VQF-grade backbone (model.loop=backbone) has no TorchScript export "
+                          "yet: run it with scripts/evaluate.py (the numba backbone); the exports cover "
+                          "model.loop=closed and open")
     md = build_metadata(model, mode, meta, net_dtype)
     if getattr(model, "closed", None) is not None:
         if net_dtype != torch.float32:
