@@ -274,3 +274,14 @@ def tune_backbone(sequences: Sequence[ImuSequence], axes: int,
         sequences = [s.without_mag() if s.has_mag else s for s in sequences]
     best, table = tune_grid(Backbone(axes=axes), [s for s in sequences if s.quat is not None], g)
     return {k: float(v) for k, v in best.items()}, table
+
+
+def backbone_bias(sequences: Sequence[ImuSequence], axes: int, params: Mapping[str, float]) -> np.ndarray:
+    """(3,) rad/s: the median over recordings of the backbone's final gyro-bias estimate (with
+    ``params``), the starting point of a learned model's bias state on the same device."""
+    from .filters import backbone as bb
+
+    p = bb.BackboneParams.from_mapping(dict(params))
+    ends = [bb.run(s.gyro, s.accel, s.mag if (axes == 9 and s.has_mag) else None, s.dt, p)["gyro_bias"][-1]
+            for s in sequences]
+    return np.median(np.stack(ends), 0)

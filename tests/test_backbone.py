@@ -140,3 +140,13 @@ def test_backbone_estimator_registered_and_runs():
         assert out.quat.shape == (300, 4) and np.isfinite(out.quat).all()
         assert est.name == f"backbone{axes}d"
     assert registry.get("backbone").tunable
+
+
+def test_bias0_is_a_prior_the_backbone_keeps_estimating_from():
+    gyr, acc, mag, dt = _synthetic(n=400)
+    b0 = np.array([0.01, -0.02, 0.005])
+    out = bb.run(gyr, acc, mag, dt, bias0=b0, acc_trust=np.ones(400), bias_trust=np.zeros(400))
+    assert np.allclose(out["gyro_bias"], b0)  # frozen (bias trust 0): stays at the prior
+    free = bb.run(gyr, acc, mag, dt, bias0=b0)
+    assert np.allclose(free["gyro_bias"][0], b0, atol=1e-3)  # one update from the prior
+    assert not np.allclose(free["gyro_bias"][-1], b0)

@@ -71,9 +71,11 @@ def start_state(params: BackboneParams, q0: Optional[np.ndarray] = None) -> np.n
 def run(gyro: np.ndarray, acc: np.ndarray, mag: Optional[np.ndarray], dt: np.ndarray,
         params: BackboneParams = BackboneParams(), q0: Optional[np.ndarray] = None,
         acc_trust: Optional[np.ndarray] = None, mag_trust: Optional[np.ndarray] = None,
-        bias_trust: Optional[np.ndarray] = None, state: Optional[np.ndarray] = None) -> Dict[str, np.ndarray]:
+        bias_trust: Optional[np.ndarray] = None, state: Optional[np.ndarray] = None,
+        bias0: Optional[np.ndarray] = None) -> Dict[str, np.ndarray]:
     """The backbone over one recording (compiled; see the module docstring). ``state`` (optional)
-    continues from a state vector, which is updated in place."""
+    continues from a state vector, which is updated in place; ``bias0`` (3,) rad/s starts the bias
+    estimate there instead of at zero (its covariance stays the initial one: a prior, not a fix)."""
     f = lambda a: np.ascontiguousarray(a, dtype=np.float64)  # noqa: E731
     gyro, acc = f(gyro), f(acc)
     n = gyro.shape[0]
@@ -87,6 +89,8 @@ def run(gyro: np.ndarray, acc: np.ndarray, mag: Optional[np.ndarray], dt: np.nda
     one = np.ones(n)
     ta, tm, tb = (one if t is None else f(np.broadcast_to(t, (n,))) for t in (acc_trust, mag_trust, bias_trust))
     s = start_state(params, q0) if state is None else state
+    if bias0 is not None:
+        s[K.S_BIAS:K.S_BIAS + 3] = np.asarray(bias0, dtype=np.float64).reshape(3)
     q, b, flags = np.empty((n, 4)), np.empty((n, 3)), np.empty((n, 3))
     _loop(np.asarray(params.vector()), s, gyro, acc, mag, dt, ta, tm, tb, use_mag, q, b, flags)
     return {"quat": q, "gyro_bias": b, "rest": flags[:, 0] > 0.5, "mag_disturbed": flags[:, 1] > 0.5,

@@ -76,7 +76,8 @@ class LearnedAHRS(nn.Module):
             if bad:
                 raise ValueError(f"model.residual config: unknown key(s) {sorted(bad)}; "
                                  f"expected a subset of {sorted(RESIDUAL_KEYS)}")
-            self.calibration = ResidualCalibration(self.axes, dict(tcn or {}), float(res.get("gyro_scale", 0.1)))
+            self.calibration = ResidualCalibration(self.axes, dict(tcn or {}), float(res.get("gyro_scale", 0.1)),
+                                                   float(res.get("gyro_clip", 0.005)))
             self.backbone = BackboneLoop(use_mag=use_mag_term and self.axes == 9,
                                          acc_trust_scale=float(res.get("acc_trust_scale", 1.0)),
                                          mag_trust_scale=float(res.get("mag_trust_scale", 1.0)),
