@@ -5,7 +5,7 @@ each nudge bounded and zero in the untrained model, so that the untrained model 
 backbone (tests/test_residual.py)::
 
     ω_in   = ω − clip(s_gyro · tanh(g_θ(x)), ±c_gyro)    gyro residual, |·| ≤ c_gyro per axis (rad/s)
-    τ_acc  = c_acc · min(t_max, 2σ(z_acc(x))),  τ_mag = c_mag · min(t_max, 2σ(z_mag(x))),  τ_bias = c_bias
+    τ_acc  = c_acc · (1 + w (min(t_max, 2σ(z_acc(x))) − 1)),  τ_mag likewise,  τ_bias = c_bias
     q      = backbone(ω_in, a, m, dt; τ_acc, τ_mag, τ_bias)
 
 ``x`` is the raw IMU in fixed physical scales (rad/s, g, 50 µT): no statistics of one device's
@@ -33,7 +33,8 @@ from ..filters import backbone as bb
 from .tcn import TCN
 
 FIELD_SCALE = 50.0  # µT: the Earth's field is 22–67 µT
-RESIDUAL_KEYS = {"gyro_scale", "gyro_clip", "acc_trust_scale", "mag_trust_scale", "bias_trust_scale", "trust_max", "backbone"}
+RESIDUAL_KEYS = {"gyro_scale", "gyro_clip", "acc_trust_scale", "mag_trust_scale", "bias_trust_scale", "trust_max",
+                 "trust_weight", "backbone"}
 
 
 class ResidualCalibration(nn.Module):
@@ -93,10 +94,11 @@ class BackboneLoop(nn.Module):
     from a given attitude. ``backbone``: :class:`~tcn_ahrs.kernels.backbone.BackboneParams` fields."""
 
     def __init__(self, use_mag: bool, acc_trust_scale: float = 1.0, mag_trust_scale: float = 1.0,
-                 bias_trust_scale: float = 1.0, trust_max: float = 2.0,
+                 bias_trust_scale: float = 1.0, trust_max: float = 2.0, trust_weight: float = 1.0,
                  backbone: Optional[Mapping[str, float]] = None):
         super().__init__()
         self.trust_max = float(trust_max)
+        self.trust_weight = float(trust_weight)
         self.use_mag = bool(use_mag)
         self.acc_trust_scale = float(acc_trust_scale)
         self.mag_trust_scale = float(mag_trust_scale)
@@ -109,7 +111,8 @@ class BackboneLoop(nn.Module):
     def trusts(self, cal: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """(B, N) trusts from the calibration's logits (2σ(z): 1 at z = 0) times the scales."""
         def trust(z: Tensor, scale: float) -> Tensor:
-            return scale * torch.clamp(2.0 * torch.sigmoid(z.double()), max=self.trust_max)
+            t = torch.clamp(2.0 * torch.sigmoid(z.double()), max=self.trust_max)
+            return scale * (1.0 + self.trust_weight * (t - 1.0))  # how far the network moves it from 1
 
         acc = trust(cal["acc_trust_logit"], self.acc_trust_scale)
         mag = trust(cal["mag_trust_logit"], self.mag_trust_scale) if "mag_trust_logit" in cal else torch.ones_like(acc)
