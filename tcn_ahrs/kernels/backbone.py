@@ -237,6 +237,17 @@ def lp(s, c, f, d, i, x, at_b, at_a, run, n, start):
 def lp_end(s, f, run, start):
     s[f] = where(either(run, start), 1.0, 0.0)
 
+
+@jit
+def lp3(s, c, f, x0, x1, x2, at_b, at_a, tau, ts):
+    """A three-component group through one step (a vector in one frame)."""
+    run, n, start = lp_begin(s, f, tau, ts)
+    y0 = lp(s, c, f, 3, 0, x0, at_b, at_a, run, n, start)
+    y1 = lp(s, c, f, 3, 1, x1, at_b, at_a, run, n, start)
+    y2 = lp(s, c, f, 3, 2, x2, at_b, at_a, run, n, start)
+    lp_end(s, f, run, start)
+    return y0, y1, y2
+
 # ------------------------------------------------------------------ quaternion helpers
 @jit
 def qmul(a0, a1, a2, a3, b0, b1, b2, b3):
@@ -268,11 +279,7 @@ def gyro_update(s, p, c, gx, gy, gz):
     ts = c[C_TS]
     if p[P_REST_BIAS] > 0.5 or p[P_MAG_REJ] > 0.5:
         # rest detection, gyro part: deviation from the low-passed rate (decisions only)
-        run, n, start = lp_begin(s, F_RG, p[P_REST_TAU], ts)
-        l0 = lp(s, c, F_RG, 3, 0, nograd(gx), C_REST_B, C_REST_A, run, n, start)
-        l1 = lp(s, c, F_RG, 3, 1, nograd(gy), C_REST_B, C_REST_A, run, n, start)
-        l2 = lp(s, c, F_RG, 3, 2, nograd(gz), C_REST_B, C_REST_A, run, n, start)
-        lp_end(s, F_RG, run, start)
+        l0, l1, l2 = lp3(s, c, F_RG, nograd(gx), nograd(gy), nograd(gz), C_REST_B, C_REST_A, p[P_REST_TAU], ts)
         d0, d1, d2 = nograd(gx) - l0, nograd(gy) - l1, nograd(gz) - l2
         clip_ = p[P_CLIP] * DEG
         moving = either(d0 * d0 + d1 * d1 + d2 * d2 >= (p[P_REST_TH_G] * DEG) ** 2,
@@ -302,11 +309,7 @@ def gyro_update(s, p, c, gx, gy, gz):
 def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
     ts = c[C_TS]
     if p[P_REST_BIAS] > 0.5:
-        run, n, start = lp_begin(s, F_RA, p[P_REST_TAU], ts)
-        l0 = lp(s, c, F_RA, 3, 0, nograd(ax), C_REST_B, C_REST_A, run, n, start)
-        l1 = lp(s, c, F_RA, 3, 1, nograd(ay), C_REST_B, C_REST_A, run, n, start)
-        l2 = lp(s, c, F_RA, 3, 2, nograd(az), C_REST_B, C_REST_A, run, n, start)
-        lp_end(s, F_RA, run, start)
+        l0, l1, l2 = lp3(s, c, F_RA, nograd(ax), nograd(ay), nograd(az), C_REST_B, C_REST_A, p[P_REST_TAU], ts)
         d0, d1, d2 = nograd(ax) - l0, nograd(ay) - l1, nograd(az) - l2
         still = d0 * d0 + d1 * d1 + d2 * d2 < p[P_REST_TH_A] ** 2
         rest_t = where(still, s[S_REST_T] + ts, 0.0 * l0)
@@ -314,11 +317,7 @@ def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
         s[S_REST_T] = rest_t
     # the accelerometer in the almost-inertial frame I_i, low-passed there (Sec. 3.2)
     e0, e1, e2 = qrot(s[S_GQ], s[S_GQ + 1], s[S_GQ + 2], s[S_GQ + 3], ax, ay, az)
-    run, n, start = lp_begin(s, F_ACC, p[P_TAU_ACC], ts)
-    f0 = lp(s, c, F_ACC, 3, 0, e0, C_ACC_B, C_ACC_A, run, n, start)
-    f1 = lp(s, c, F_ACC, 3, 1, e1, C_ACC_B, C_ACC_A, run, n, start)
-    f2 = lp(s, c, F_ACC, 3, 2, e2, C_ACC_B, C_ACC_A, run, n, start)
-    lp_end(s, F_ACC, run, start)
+    f0, f1, f2 = lp3(s, c, F_ACC, e0, e1, e2, C_ACC_B, C_ACC_A, p[P_TAU_ACC], ts)
     # ... in the 6D earth frame E_i, normalised
     v0, v1, v2 = qrot(s[S_AQ], s[S_AQ + 1], s[S_AQ + 2], s[S_AQ + 3], f0, f1, f2)
     inv = 1.0 / sqrt(v0 * v0 + v1 * v1 + v2 * v2 + 1e-300)
