@@ -10,9 +10,10 @@ backbone (tests/test_residual.py)::
 
 ``x`` is the raw IMU in fixed physical scales (rad/s, g, 50 µT): no statistics of one device's
 training set, so a new device is read the same way. ``g_θ`` and ``z`` are two causal TCNs whose
-output layers start at zero (ω_in = ω, τ = 1). The trust scales ``c`` (default 1) are
-hyperparameters of the recipe, chosen on inner folds: ``c = 0`` everywhere turns the backbone
-into strapdown integration of the corrected gyro (TUM VI's calibrated IMU is best integrated).
+output layers start at zero (ω_in = ω, τ = 1). ``c_gyro`` (applied in eval mode only; the network
+learns within ``s_gyro``), ``w`` and the trust scales ``c`` are the recipe's inference knobs
+(``conf/model/residual.yaml``: c_gyro 0 and w 0.5, chosen on BROAD's development folds; c = 1).
+``c = 0`` everywhere turns the backbone into strapdown integration of the corrected gyro.
 
 Training needs no gradient through the filter (the filter's tensor reading costs ~9 ms per
 sample on a CPU): the gyro residual learns the ground-truth rotation increments (Eq. 28's loss,
