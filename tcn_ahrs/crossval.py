@@ -1,8 +1,9 @@
 """Leave-recordings-out cross-validation (``scripts/crossval.py``).
 
-For each fold ``i`` of ``data.folds``: train with ``data.fold=i`` (the other training recordings,
-whole, train; fold ``i``'s recordings, whole, select the checkpoint), then score the selected
-checkpoint next to the baselines on fold ``i``'s recordings with the one comparison runner
+Nested: for each (outer) fold ``i`` of ``data.folds``, train on the other training recordings
+with an inner validation set (:func:`inner_split`: the next fold, whole, or the later parts of
+the recordings) that chooses the epoch — or, for the residual model, its inference knobs — then
+score that checkpoint next to the baselines on fold ``i``'s recordings, which chose nothing, with the one comparison runner
 (:func:`tcn_ahrs.compare.compare`; baselines tuned, if asked, on the fold's training recordings
 only). Writes ``crossval.json`` and ``crossval.md`` (per fold and mean ± sample standard
 deviation over folds) under the output folder, one sub-folder per fold.
@@ -32,6 +33,46 @@ def _fold_cfg(cfg: DictConfig, i: int, run_dir: Path) -> DictConfig:
     return f
 
 
+def inner_split(cfg: DictConfig, folds: List[list], i: int, fcfg: DictConfig) -> Tuple[list, list, str]:
+    """(train, validation, description) for outer fold ``i``: nothing of fold ``i`` in either.
+
+    ``crossval.inner``: ``fold`` — the next fold's recordings, whole, validate (needs ≥ 3 folds);
+    ``split`` — the other recordings' later parts validate (``data.train_part``), their first
+    parts train; ``auto`` — ``fold`` with ≥ 4 folds, else ``split`` (too few recordings to
+    spare whole ones)."""
+    from .datasets import load_split, split_recording
+
+    mode = str(cfg.crossval.get("inner") or "auto")
+    if mode not in ("auto", "fold", "split"):
+        raise ValueError(f"crossval.inner: expected auto, fold or split, got {mode!r}")
+    if mode == "auto":
+        mode = "fold" if len(folds) >= 4 else "split"
+    if mode == "fold" and len(folds) < 3:
+        raise ValueError(f"crossval.inner=fold needs at least 3 folds; data '{cfg.data.name}' has {len(folds)}")
+    others = load_split(fcfg.data, "train")  # the training recordings without fold i, whole
+    if mode == "fold":
+        j = (int(i) + 1) % len(folds)
+        inner = {str(r) for r in folds[j]}
+        return ([s for s in others if s.name not in inner], [s for s in others if s.name in inner],
+                f"inner validation: fold {j} ({', '.join(sorted(inner))}), whole")
+    parts = [split_recording(s, cfg.data.get("train_part") or {}) for s in others]
+    return ([a for a, _ in parts if a is not None], [b for _, b in parts if b is not None],
+            f"inner validation: the later parts of the {len(others)} other recordings ({dict(cfg.data.get('train_part') or {})} train)")
+
+
+def release_knobs(fold_knobs: List[List[dict]]) -> Dict[str, Any]:
+    """The residual knobs for a released model: each point's criterion (worse ratio to the tuned
+    backbone, :func:`tcn_ahrs.tuning.select_residual_knobs`) averaged over the folds' inner
+    validation tables; the lowest wins."""
+    scores: Dict[tuple, List[float]] = {}
+    for table in fold_knobs:
+        for row in table:
+            scores.setdefault(tuple(sorted(row["knobs"].items())), []).append(float(row["score"]))
+    n = max(len(v) for v in scores.values())
+    best = min((k for k, v in scores.items() if len(v) == n), key=lambda k: float(np.mean(scores[k])))
+    return {"knobs": dict(best), "score": float(np.mean(scores[best])), "folds": n}
+
+
 def summarize(folds: List[Dict[str, Any]]) -> Dict[str, Dict[str, Dict[str, float]]]:
     """{method: {metric: {"mean", "std", "n"}}} over the folds' per-fold means."""
     out: Dict[str, Dict[str, Dict[str, float]]] = {}
@@ -51,9 +92,9 @@ def summarize(folds: List[Dict[str, Any]]) -> Dict[str, Dict[str, Dict[str, floa
 def markdown(result: Dict[str, Any]) -> str:
     keys = [k for k in metric_keys() if any(k in m for m in result["summary"].values())]
     lines = [f"# Cross-validation: {result['dataset']} ({len(result['folds'])} folds, leave-recordings-out)\n",
-             "Each fold: trained on the other training recordings, checkpoint selected on the fold's "
-             "recordings (whole), scored on them (optimistic: selected there), next to the last "
-             "epoch's checkpoint (no selection). Degrees; mean ± sample std over folds.\n",
+             "Nested: each fold's model trained on the other training recordings, its epoch or "
+             "inference knobs chosen on an inner validation set (crossval.inner), scored on the "
+             "fold's recordings, whole, which chose nothing. Degrees; mean ± sample std over folds.\n",
              "| method | " + " | ".join(metric_label(k, long=True) for k in keys) + " |", "|---" * (len(keys) + 1) + "|"]
     for method, m in result["summary"].items():
         cells = [f"{m[k]['mean']:.2f} ± {m[k]['std']:.2f}" if k in m else "—" for k in keys]
@@ -137,7 +178,7 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
     if cv.get("peers"):
         methods += [m for m in registry.methods("peer") if m not in methods]
     label = str(cv.get("label") or "Learned")
-    fold_results = []
+    fold_results, fold_knobs = [], []
     for i in idx:
         run_dir = out / f"fold{i}"
         fcfg = _fold_cfg(cfg, i, run_dir)
@@ -146,8 +187,9 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
         if cv.get("retrain") or not (done.is_file() and best.is_file()):
             with open_dict(fcfg):
                 fcfg.resume = (run_dir / "checkpoints" / "last.ckpt").is_file() and not cv.get("retrain")
-            print(f"== fold {i}: training on {fcfg.data.name} without {folds[i]} (run dir {run_dir})")
-            res = train_main(fcfg)
+            train_seqs, val_seqs, inner = inner_split(cfg, folds, i, fcfg)
+            print(f"== fold {i}: training on {fcfg.data.name} without {folds[i]}; {inner} (run dir {run_dir})")
+            res = train_main(fcfg, train_seqs=train_seqs, val_seqs=val_seqs)
             best = Path(res["best"])
             done.write_text(str(best) + "\n")
         else:
@@ -155,12 +197,12 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
             print(f"== fold {i}: reusing {best}")
         eval_seqs = [s for s in load_split(fcfg.data, "val") if s.has_gt]
         tune_seqs = load_split(fcfg.data, "train") if cv.get("tune") else []
-        # the selected checkpoint's score on the fold it was selected on is optimistic; the last
-        # epoch's (no selection) is not: both are reported
+        # nested: the epoch (or the residual model's knobs) was chosen on the inner validation
+        # recordings; fold i's recordings choose nothing and only score
         ckpts = {label: str(best)}
-        last = run_dir / "checkpoints" / "last.ckpt"
-        if last.is_file():
-            ckpts[f"{label} (last epoch)"] = str(last)
+        knobs_file = run_dir / "knobs.json"
+        if knobs_file.is_file():
+            fold_knobs.append(json.loads(knobs_file.read_text())["table"])
         res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=int(cfg.data.get("axes", 9)),
                       both_axes=False, tune=bool(cv.get("tune")), ckpts=ckpts,
                       out_dir=run_dir / "eval", dataset=str(cfg.data.name),
@@ -170,6 +212,10 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
                              "means": means})
     result = {"dataset": str(cfg.data.name), "folds": fold_results, "summary": summarize(fold_results),
               "config": OmegaConf.to_container(cfg, resolve=True)}
+    if fold_knobs:
+        result["release_knobs"] = release_knobs(fold_knobs)
+        print(f"residual knobs for a released model (mean over the {len(fold_knobs)} folds' inner validation): "
+              f"{result['release_knobs']['knobs']}")
     (out / "crossval.json").write_text(json.dumps(result, indent=1, default=str))
     md = markdown(result)
     (out / "crossval.md").write_text(md)

@@ -201,6 +201,10 @@ class AHRSDataModule(pl.LightningDataModule):
             raise ValueError(f"data '{name}': none of the {len(self.train_seqs)} training recordings has valid "
                              "ground truth (quat) to train on")
         longest = max((len(s) for s in keep), default=0) - self.margin
+        if longest < 2:
+            raise ValueError(f"data '{(self.data_cfg or {}).get('name', '?')}': every training recording is shorter than "
+                             f"the model's warm-up context ({self.margin} samples before a window) plus 2 samples; "
+                             "use longer recordings or a smaller model.tcn (fewer dilations)")
         if longest < self.window:
             warnings.warn(f"training window {self.window} is longer than every training recording "
                           f"(longest {longest}); using {longest}")

@@ -112,3 +112,23 @@ def test_export_refuses_the_backbone_model_with_a_clear_error(tmp_path):
     with pytest.raises(ExportError, match="backbone"):
         export_batch(residual_model(9).eval(), tmp_path / "m.pt")
     assert not (tmp_path / "m.pt").exists()
+
+
+def test_knob_selection_falls_back_to_integration_only_where_correction_hurts():
+    """Inner-fold knob selection (tuning.select_residual_knobs): an exact gyro with walking
+    accelerations -> strapdown (every correction hurts); a 1.5-2 deg/s gyro bias -> the backbone.
+    The reference point (tuned backbone alone) is always in the table."""
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.tuning import select_residual_knobs
+
+    exact = simulate("walking", 30.0, 100.0, seed=1, axes=6, noise_free=True)
+    biased = simulate("slow_rotation", 60.0, 100.0, seed=2, axes=6, gyro_bias_range_dps=(1.5, 2.0))
+    for seq, scale in ((exact, 0.0), (biased, 1.0)):
+        model = residual_model(6)
+        chosen, table = select_residual_knobs(model, [seq])
+        assert chosen["acc_trust_scale"] == chosen["bias_trust_scale"] == scale
+        assert model.backbone.acc_trust_scale == scale  # applied to the model
+        ref = [r for r in table if r["knobs"]["acc_trust_scale"] == 1.0 and r["knobs"]["trust_weight"] == 0.0
+               and r["knobs"]["gyro_clip"] == 0.0]
+        assert len(ref) == 1 and table[0]["aae_deg"] <= ref[0]["aae_deg"]
+        assert table[0]["inclination_deg"] <= ref[0]["inclination_deg"]
