@@ -185,6 +185,115 @@ if AVAILABLE:
             out[k, 4], out[k, 5], out[k, 6] = v[0] - s[10] + c0, v[1] - s[11] + c1, v[2] - s[12] + c2
 
 
+if AVAILABLE:
+    from .kernels import backbone as _K
+
+    _bb_coefficients, _bb_gyro, _bb_acc, _bb_mag = _K.coefficients, _K.gyro_update, _K.acc_update, _K.mag_update
+    _bb_quat6, _bb_quat9, _bb_qmul = _K.quat6, _K.quat9, _K.qmul
+    _BB_S_BIAS = _K.S_BIAS
+
+    @numba.njit(cache=True)
+    def _backbone_steps(xs, dts, feats, params, wts, ints, rings, p, s, coeff, knobs, m_conj, out):  # pragma: no cover
+        """The residual model per sample: networks (:func:`_networks`, head rows = −[gyro net
+        pre-tanh (3), trust logits]) -> gyro residual and trusts (as
+        :class:`~tcn_ahrs.model.residual.BackboneLoop`) -> one backbone step (the kernel of
+        :mod:`tcn_ahrs.kernels.backbone`). knobs: [gyro_scale, gyro_clip, trust_max, trust_weight,
+        acc, mag, bias trust scale, last dt, use_mag]; m_conj (4,): the magnetic frame's
+        conjugate (9D; identity for 6D), applied to the output. out (k, 7): quat, omega."""
+        c, nl = ints[0], ints[2]
+        width = c
+        for li in range(nl):
+            width = max(width, ints[_HEADER + _PER_LAYER * li] * ints[_HEADER + _PER_LAYER * li + 2])
+        h_in = np.empty(max(width, ints[6]))
+        h_out = np.empty(max(width, ints[6]))
+        tap = np.empty(ints[1] * width, dtype=np.float32)
+        pre = np.empty(width, dtype=np.float32)
+        v = np.empty(ints[7])
+        no_feats = np.empty(0)
+        g_scale, g_clip, t_max, t_w = knobs[0], knobs[1], knobs[2], knobs[3]
+        use_mag = knobs[8] > 0.5
+        for k in range(xs.shape[0]):
+            x = xs[k]
+            t = int(knobs[9])
+            _networks(x, t, feats[k] if feats.shape[0] > 0 else no_feats, params, wts, ints, rings,
+                      h_in, h_out, tap, pre, v)
+            knobs[9] = t + 1
+            trusts = np.ones(3)
+            for j in range(2):
+                if 3 + j < ints[7]:
+                    tr = min(t_max, 2.0 / (1.0 + math.exp(v[3 + j])))  # 2 σ(z) with z = −v
+                    trusts[j] = knobs[4 + j] * (1.0 + t_w * (tr - 1.0))
+                else:
+                    trusts[j] = knobs[4 + j]
+            trusts[2] = knobs[6]
+            gx = x[0] - min(g_clip, max(-g_clip, g_scale * math.tanh(-v[0])))
+            gy = x[1] - min(g_clip, max(-g_clip, g_scale * math.tanh(-v[1])))
+            gz = x[2] - min(g_clip, max(-g_clip, g_scale * math.tanh(-v[2])))
+            if dts[k] != knobs[7]:
+                _bb_coefficients(p, dts[k], coeff)
+                knobs[7] = dts[k]
+            _bb_gyro(s, p, coeff, gx, gy, gz)
+            if x[3] != 0.0 or x[4] != 0.0 or x[5] != 0.0:  # the batch loop skips [0 0 0], as VQF
+                _bb_acc(s, p, coeff, x[3], x[4], x[5], trusts[0], trusts[2])
+            if use_mag and (x[6] != 0.0 or x[7] != 0.0 or x[8] != 0.0):
+                _bb_mag(s, p, coeff, x[6], x[7], x[8], trusts[1])
+            if use_mag:
+                w, qx, qy, qz = _bb_quat9(s)
+            else:
+                w, qx, qy, qz = _bb_quat6(s)
+            out[k, 0], out[k, 1], out[k, 2], out[k, 3] = _bb_qmul(m_conj[0], m_conj[1], m_conj[2], m_conj[3],
+                                                                  w, qx, qy, qz)
+            out[k, 4], out[k, 5], out[k, 6] = gx - s[_BB_S_BIAS], gy - s[_BB_S_BIAS + 1], gz - s[_BB_S_BIAS + 2]
+
+
+def _flat_networks(ts, head_weight, head_bias, head_matrix, window: int = 1, use_acc: bool = False,
+                   use_mag: bool = False):
+    """The folded networks of an exported streaming module ``ts`` (:class:`StreamingAHRS`) as the
+    flat arrays :func:`_networks` reads: float32 weights, float64 head ``[M y − (W h + b)]`` rows,
+    the int layout, and one float32 ring-buffer array that ``ts``'s (unscripted) buffers are made
+    to view, so that its chunk convolutions (:func:`ring_convolutions`) and the compiled
+    per-sample step advance the same state. Returns (wts, params, ints, rings, views, dilations)."""
+    c, k = int(ts.axes), int(ts.kernel_size)
+    layers = []  # (groups, c_in, c_out, dilation, span, weight (groups, k*c_in, c_out), bias)
+    if ts.groups > 0:
+        w0 = ts.first_weight_t.double()
+        layers.append((1, c, w0.shape[1], ts.first_dilation, ts.first_span, w0.unsqueeze(0),
+                       ts.first_bias_step.double().reshape(-1)))
+        for w, b, d, span in zip(ts.step_weights, ts.step_biases, ts.hidden_dilations, ts.spans):
+            g, _, c_out = w.shape
+            layers.append((g, w.shape[1] // k, c_out, d, span, w.double(), b.double().reshape(-1)))
+    # weights as (groups, c_out, k c_in): each output one contiguous dot product over its taps
+    layers = [(g, c_in, c_out, d, span, w.transpose(1, 2).contiguous(), b)
+              for g, c_in, c_out, d, span, w, b in layers]
+    wts, params, ints = [], [], [c, k, len(layers), int(window), int(use_acc), int(use_mag),
+                                 head_weight.shape[1], head_weight.shape[0]]
+    size = 0
+    ring = 0
+    for g, c_in, c_out, d, span, w, b in layers:  # the networks' weights in float32, as exported
+        ints += [g, c_in, c_out, d, span, size, size + w.numel(), ring]
+        wts += [w.reshape(-1), b]
+        size += w.numel() + b.numel()
+        ring += span * g * c_in
+    wts = (torch.cat(wts) if wts else torch.zeros(1)).float().numpy().copy()
+    rings = np.zeros(max(ring, 1), dtype=np.float32)
+    views = []
+    if ts.groups > 0:
+        flat = torch.from_numpy(rings)
+        off = 0
+        for g, c_in, _, _, span, _, _ in layers:
+            views.append(flat[off:off + g * span * c_in].view(g, span, c_in))
+            off += g * span * c_in
+        ts.first_buffer = views[0][0]
+        ts.ring_buffers = views[1:]
+    dilations = [int(d) for _, _, _, d, _, _, _ in layers]
+    size = 0
+    for t_ in (head_weight, head_bias, head_matrix):
+        ints.append(size)
+        params.append(t_.double().reshape(-1))
+        size += t_.numel()
+    return wts, torch.cat(params).numpy().copy(), np.asarray(ints, dtype=np.int64), rings, views, dilations
+
+
 _SCRIPTED = {}
 
 
@@ -209,54 +318,21 @@ class CompiledStreaming:
     first sample after ``reset`` is not used. A sample with a NaN/inf reading or a dt that is not
     finite and > 0 raises ValueError before any state changes."""
 
+    def __new__(cls, model: torch.nn.Module, rate_hz: Optional[float] = None):
+        if cls is CompiledStreaming and getattr(model, "backbone", None) is not None:
+            return BackboneStreaming(model)  # the residual model: same contract, its own runtime
+        return super().__new__(cls)
+
     def __init__(self, model: torch.nn.Module, rate_hz: Optional[float] = None):
         if not AVAILABLE:
             raise ImportError("CompiledStreaming needs numba (pip install -e '.[fast]')")
-        if getattr(model, "backbone", None) is not None:
-            raise ValueError("CompiledStreaming runs the learned closed loop (model.loop=closed); a model on the "
-                             "backbone (model.loop=backbone) is run by scripts/evaluate.py for now")
         from .export import ClosedLoopStreaming
 
         meta: Mapping[str, Any] = {"rate_hz": rate_hz}
         ts = ClosedLoopStreaming(model.eval(), meta)  # the folded weights (not scripted)
-        self.axes = c = int(ts.axes)
-        k = int(ts.kernel_size)
-        layers = []  # (groups, c_in, c_out, dilation, span, weight (groups, k*c_in, c_out), bias)
-        if ts.groups > 0:
-            w0 = ts.first_weight_t.double()
-            layers.append((1, c, w0.shape[1], ts.first_dilation, ts.first_span, w0.unsqueeze(0),
-                           ts.first_bias_step.double().reshape(-1)))
-            for w, b, d, span in zip(ts.step_weights, ts.step_biases, ts.hidden_dilations, ts.spans):
-                g, _, c_out = w.shape
-                layers.append((g, w.shape[1] // k, c_out, d, span, w.double(), b.double().reshape(-1)))
-        # weights as (groups, c_out, k c_in): each output one contiguous dot product over its taps
-        layers = [(g, c_in, c_out, d, span, w.transpose(1, 2).contiguous(), b)
-                  for g, c_in, c_out, d, span, w, b in layers]
-        wts, params, ints = [], [], [c, k, len(layers), ts.window, int(ts.use_acc), int(ts.use_mag),
-                                     ts.head_weight.shape[1], ts.head_weight.shape[0]]
-        size = 0
-        ring = 0
-        for g, c_in, c_out, d, span, w, b in layers:  # the networks' weights in float32, as exported
-            ints += [g, c_in, c_out, d, span, size, size + w.numel(), ring]
-            wts += [w.reshape(-1), b]
-            size += w.numel() + b.numel()
-            ring += span * g * c_in
-        self._wts = (torch.cat(wts) if wts else torch.zeros(1)).float().numpy().copy()
-        size = 0
-        # the ring buffers live in one float32 array that the exported module's (unscripted)
-        # buffers view: step runs the networks here, step_chunk through ts._errors_chunk
-        # (convolutions over the chunk), on the same state
-        self._rings = np.zeros(max(ring, 1), dtype=np.float32)
-        if ts.groups > 0:
-            flat = torch.from_numpy(self._rings)
-            views, off = [], 0
-            for g, c_in, _, _, span, _, _ in layers:
-                views.append(flat[off:off + g * span * c_in].view(g, span, c_in))
-                off += g * span * c_in
-            ts.first_buffer = views[0][0]
-            ts.ring_buffers = views[1:]
-        self._views = views if ts.groups > 0 else []
-        self._dilations = [int(d) for _, _, _, d, _, _, _ in layers]
+        self.axes = int(ts.axes)
+        nets = _flat_networks(ts, ts.head_weight, ts.head_bias, ts.head_matrix, ts.window, ts.use_acc, ts.use_mag)
+        self._wts, self._params, self._ints, self._rings, self._views, self._dilations = nets
         self._ts = ts
         self._n_feat = int(ts.head_weight.shape[1])
         self._no_feats = np.zeros((0, self._n_feat))
@@ -264,12 +340,6 @@ class CompiledStreaming:
         # (measured, broad9, 1 thread, per sample: 11 µs at 100 per call — the per-call overhead
         # of ~40 small ops — 4.1 µs at 256, 2.8 µs at 1024; the compiled loop 4.5 µs at any size)
         self.chunk_networks = 256
-        for t_ in (ts.head_weight, ts.head_bias, ts.head_matrix):
-            ints.append(size)
-            params.append(t_.double().reshape(-1))
-            size += t_.numel()
-        self._params = torch.cat(params).numpy().copy()
-        self._ints = np.asarray(ints, dtype=np.int64)
         self._cfg = np.asarray([ts.k_acc, ts.k_mag, ts.k_bias, ts.rest_tc, ts.rest_gyro, ts.rest_acc,
                                 ts.acc_reject, ts.gravity, ts.mag_min, ts.mag_max], dtype=np.float64)
         self._state = np.zeros(_STATE_RING + 6 * ts.window)
@@ -346,5 +416,138 @@ class CompiledStreaming:
         if xs.shape[0] > 1 and not (np.isfinite(dts[1:]).all() and (dts[1:] > 0.0).all()):
             raise ValueError("dt: expected finite time steps > 0 s after sample 0")
         self._quat0(q0)
+        self.reset(q0)
+        return self.step_chunk(xs, dts)
+
+
+class BackboneStreaming:
+    """The residual model (``model.loop=backbone``, :mod:`tcn_ahrs.model.residual`) one sample or
+    one chunk per call, compiled by numba — what ``CompiledStreaming(model)`` returns for it, with
+    the same contract: ``reset(q0)``; ``step(sample (C,), dt)`` -> quat (4,), omega (3,);
+    ``step_chunk(samples (k, C), dt)``; ``run(imu, dt, q0)``. float64 numpy out; omega = the gyro
+    fed to the backbone minus its bias state (the rate it integrates).
+
+    The two networks run on ring buffers (:func:`~tcn_ahrs.export.fused.fuse_residual`: BatchNorm
+    folded, float32 as the batch model; a chunk of ≥ ``chunk_networks`` samples as convolutions),
+    their outputs become the gyro residual and the trusts exactly as in
+    :class:`~tcn_ahrs.model.residual.BackboneLoop`, and the backbone kernel steps on
+    (:mod:`tcn_ahrs.kernels.backbone`, the function the batch loop runs). 9 axes: the heading is
+    referred to the field of the first sample after ``reset`` (the batch model's ``heading_ref``
+    "init"). Unlike the closed loop's, the dt of the first sample after ``reset`` IS used (the
+    backbone integrates sample 0, as the batch model does). A non-finite reading or a dt that is
+    not finite and > 0 raises ValueError before any state changes."""
+
+    def __init__(self, model: torch.nn.Module):
+        if not AVAILABLE:
+            raise ImportError("CompiledStreaming needs numba (pip install -e '.[fast]')")
+        from .export.fused import fuse_residual
+        from .export.open_loop import StreamingAHRS
+        from .filters import backbone as bb
+
+        if getattr(model, "backbone", None) is None:
+            raise ValueError("BackboneStreaming: the model has no backbone (model.loop must be 'backbone')")
+        model = model.eval()
+        self._bb = bb
+        self.axes = c = int(model.axes)
+        fused = fuse_residual(model)
+        ts = StreamingAHRS(fused, {})
+        n_trust = 2 if c == 9 else 1
+        # head rows: −(W h + b) = −[gyro net before tanh (3), trust logits]; the features arrive
+        # as sqrt(2) GELU (the sqrt(1/2) folded into W)
+        w = torch.cat([ts.out_weight_f64[0:3], fused["trust_weight"][:n_trust] * math.sqrt(0.5)], 0)
+        b = torch.cat([fused["out_bias"][0:3], fused["trust_bias"][:n_trust]])
+        nets = _flat_networks(ts, w, b, torch.zeros(w.shape[0], c, dtype=torch.float64))
+        self._wts, self._nparams, self._ints, self._rings, self._views, self._dilations = nets
+        self._ts = ts
+        self._no_feats = np.zeros((0, int(w.shape[1])))
+        self.chunk_networks = 256
+        cal, loop = model.calibration, model.backbone
+        self._use_mag = bool(loop.use_mag) and c == 9
+        self._p = np.asarray(loop.params.vector())
+        self._params = loop.params
+        self._bias0 = loop.bias_init.detach().double().numpy().copy()
+        self._knobs = np.asarray([cal.gyro_scale, cal.gyro_clip, loop.trust_max, loop.trust_weight,
+                                  loop.acc_trust_scale, loop.mag_trust_scale, loop.bias_trust_scale,
+                                  -1.0, float(self._use_mag), 0.0], dtype=np.float64)
+        self._coeff = np.zeros(bb.K.N_COEFF)
+        self._m_conj = np.array([1.0, 0.0, 0.0, 0.0])
+        self._out1 = np.empty((1, 7))
+        self._dt1 = np.zeros(1)
+        self.reset(np.array([1.0, 0.0, 0.0, 0.0]))
+
+    def reset(self, q0) -> None:
+        """Start a new recording at attitude q0 (w, x, y, z), nav_from_body, ENU."""
+        self._q0 = CompiledStreaming._quat0(q0).numpy()
+        self._state = None  # the backbone starts at the first sample (9D: it needs its field)
+        self._knobs[7] = -1.0  # coefficients recomputed at the first step
+        self._knobs[9] = 0.0   # networks' time index
+        self._ts.t = 0
+        self._ts._reset_rings()
+
+    def _start(self, x0: np.ndarray) -> None:
+        from . import so3
+        from .filters.common import magnetic_from_nav
+
+        q = self._q0
+        self._m_conj = np.array([1.0, 0.0, 0.0, 0.0])
+        if self._use_mag:
+            m_from_n = magnetic_from_nav(torch.as_tensor(q), torch.as_tensor(x0[6:9]))
+            q = so3.quat_mul(m_from_n, torch.as_tensor(q)).numpy()
+            self._m_conj = so3.quat_conj(m_from_n).numpy().copy()
+        self._state = self._bb.start_state(self._params, q)
+        self._state[self._bb.K.S_BIAS:self._bb.K.S_BIAS + 3] = self._bias0
+
+    def _check(self, xs: np.ndarray, dts: np.ndarray) -> None:
+        if not np.isfinite(xs).all():
+            i = [int(v) for v in np.argwhere(~np.isfinite(xs))[0]]
+            raise ValueError(f"sample: non-finite value at index {i} (expected finite readings: drop or "
+                             "interpolate that sample)")
+        if not (np.isfinite(dts).all() and (dts > 0.0).all()):
+            raise ValueError(f"dt: expected finite time steps > 0 s, got {dts.tolist()}")
+
+    def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
+        """One sample (C,) -> (quat (4,), omega (3,))."""
+        x = np.asarray(sample, dtype=np.float64).reshape(1, -1)
+        if x.shape[1] != self.axes:
+            raise ValueError(f"sample: expected {self.axes} values, got {x.shape[1]}")
+        self._dt1[0] = dt
+        self._check(x, self._dt1)
+        if self._state is None:
+            self._start(x[0])
+        _backbone_steps(x, self._dt1, self._no_feats, self._nparams, self._wts, self._ints, self._rings, self._p,
+                        self._state, self._coeff, self._knobs, self._m_conj, self._out1)
+        return self._out1[0, 0:4].copy(), self._out1[0, 4:7].copy()
+
+    def step_chunk(self, samples, dt: Union[float, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
+        """k samples (k, C) -> (quat (k, 4), omega (k, 3)): what k calls of :meth:`step` return."""
+        xs = np.ascontiguousarray(np.asarray(samples, dtype=np.float64))
+        if xs.ndim != 2 or xs.shape[1] != self.axes:
+            raise ValueError(f"samples: expected shape (k, {self.axes}), got {list(xs.shape)}")
+        dts = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],)))
+        self._check(xs, dts)
+        if xs.shape[0] == 0:
+            return np.zeros((0, 4)), np.zeros((0, 3))
+        if self._state is None:
+            self._start(xs[0])
+        feats = self._no_feats
+        if xs.shape[0] >= self.chunk_networks:
+            with torch.no_grad():
+                feats = _ring_convolutions()(torch.from_numpy(xs), int(self._knobs[9]), self._views,
+                                             self._ts.chunk_weights, self._ts.chunk_biases, self._dilations,
+                                             int(self._ts.groups)).numpy()
+        out = np.empty((xs.shape[0], 7))
+        _backbone_steps(xs, dts, feats, self._nparams, self._wts, self._ints, self._rings, self._p,
+                        self._state, self._coeff, self._knobs, self._m_conj, out)
+        return out[:, 0:4], out[:, 4:7]
+
+    def run(self, imu, dt, q0) -> Tuple[np.ndarray, np.ndarray]:
+        """reset(q0), then imu (N, C) -> quat (N, 4), omega (N, 3). Every input is checked before
+        the state is reset."""
+        xs = np.ascontiguousarray(np.asarray(imu, dtype=np.float64))
+        if xs.ndim != 2 or xs.shape[1] != self.axes:
+            raise ValueError(f"imu: expected shape (N, {self.axes}), got {list(xs.shape)}")
+        dts = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],)))
+        self._check(xs, dts)
+        CompiledStreaming._quat0(q0)
         self.reset(q0)
         return self.step_chunk(xs, dts)

@@ -2,6 +2,7 @@
 the residuals stay within their bounds, and the trust labels read the ground truth correctly."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -104,7 +105,7 @@ def test_trust_labels_from_ground_truth():
     assert not lab[-5:].any()
 
 
-def test_export_refuses_the_backbone_model_with_a_clear_error(tmp_path):
+def test_torchscript_export_refuses_the_backbone_model_with_a_clear_error(tmp_path):
     import pytest
 
     from tcn_ahrs.export import ExportError, export_batch
@@ -132,3 +133,74 @@ def test_knob_selection_falls_back_to_integration_only_where_correction_hurts():
                and r["knobs"]["gyro_clip"] == 0.0]
         assert len(ref) == 1 and table[0]["aae_deg"] <= ref[0]["aae_deg"]
         assert table[0]["inclination_deg"] <= ref[0]["inclination_deg"]
+
+
+def _trained_like(axes: int, seed: int = 0) -> LearnedAHRS:
+    """A residual model with random (non-zero) output layers and BatchNorm statistics, so that the
+    gyro residual and both trusts move (the untrained model's zero outputs would prove nothing)."""
+    torch.manual_seed(seed)
+    model = residual_model(axes, gyro_clip=0.01, trust_weight=1.0)
+    with torch.no_grad():
+        for net in (model.calibration.gyro_net, model.calibration.trust_net):
+            net.out.weight.normal_(0.0, 0.3)
+            net.out.bias.normal_(0.0, 0.3)
+            for m in net.modules():
+                if isinstance(m, torch.nn.BatchNorm1d):
+                    m.running_mean.normal_(0.0, 0.1)
+                    m.running_var.uniform_(0.5, 2.0)
+        model.backbone.bias_init.copy_(torch.tensor([0.002, -0.001, 0.003], dtype=torch.float64))
+    return model.eval()
+
+
+def test_compiled_streaming_equals_the_evaluated_model():
+    """CompiledStreaming(model) of a residual model: whole-recording chunks, one sample per call,
+    and a second recording after reset() all equal LearnedEstimator's batch run (<= 1e-5 rad),
+    6 and 9 axes; irregular dt."""
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.streaming import BackboneStreaming, CompiledStreaming
+
+    def angle(a, b):
+        return 2.0 * np.arccos(np.clip(np.abs((a * b).sum(-1)), 0.0, 1.0)).max()
+
+    for axes in (9, 6):
+        model = _trained_like(axes)
+        stream = CompiledStreaming(model)
+        assert isinstance(stream, BackboneStreaming)
+        for i, prof in enumerate(["walking", "fast_rotation"]):
+            seq = simulate(prof, 8.0, 200.0, seed=i, axes=axes)
+            rng = np.random.default_rng(i)
+            seq = dataclasses.replace(seq, time=np.concatenate([[0.0], np.cumsum(rng.uniform(0.004, 0.006, len(seq) - 1))]))
+            ref = LearnedEstimator(model).run(seq, seq.quat[0], 0)
+            imu = np.concatenate([seq.gyro, seq.accel] + ([seq.mag] if axes == 9 else []), 1)
+            q, omega = stream.run(imu, seq.dt, seq.quat[0])  # second pass: after reset of the first
+            assert angle(q, ref.quat) < 1e-5
+            assert np.abs(omega - (imu[:, 0:3] + ref.signals["gyro_correction"]
+                                   - ref.signals["gyro_bias_state"])).max() < 1e-6
+            stream.reset(seq.quat[0])
+            steps = np.array([stream.step(imu[k], seq.dt[k])[0] for k in range(300)])
+            assert angle(steps, ref.quat[:300]) < 1e-5
+
+
+def test_compiled_streaming_refuses_bad_samples_before_any_state_change():
+    import pytest
+
+    from tcn_ahrs.streaming import CompiledStreaming
+
+    model = _trained_like(9)
+    seq = _seq()
+    imu = np.concatenate([seq.gyro, seq.accel, seq.mag], 1)
+    a, b = CompiledStreaming(model), CompiledStreaming(model)
+    for s in (a, b):
+        s.reset([1.0, 0.0, 0.0, 0.0])
+        s.step_chunk(imu[:100], 0.01)
+    bad = imu[100].copy()
+    bad[4] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        a.step(bad, 0.01)
+    with pytest.raises(ValueError, match="dt"):
+        a.step(imu[100], 0.0)
+    with pytest.raises(ValueError, match="expected 9 values"):
+        a.step(imu[100, :6], 0.01)
+    qa, _ = a.step_chunk(imu[100:200], 0.01)
+    qb, _ = b.step_chunk(imu[100:200], 0.01)
+    assert np.array_equal(qa, qb)

@@ -253,3 +253,44 @@ def ring_convolutions(samples: Tensor, t0: int, rings: List[Tensor], weights: Li
                      groups=buf.size(0))
         h = torch.addcmul(u, u, torch.erf(u)).view(groups, -1, n).transpose(1, 2)
     return h.transpose(0, 1).reshape(n, -1).to(torch.float64)
+
+
+def fuse_residual(model: nn.Module) -> Dict[str, Any]:
+    """The residual model's two networks (:class:`~tcn_ahrs.model.residual.ResidualCalibration`)
+    in :func:`fuse_model`'s layout, so the streaming ring buffers (:class:`StreamingAHRS`,
+    :func:`ring_convolutions`) run them: groups = [gyro net, trust net], the fixed physical input
+    scale as the normalisation (mean 0, std 1/scale), ``out_weight`` rows 0-2 = the gyro net's
+    output *before* its tanh (the caller applies ``gyro_scale · tanh``), ``trust_weight`` rows =
+    the acc (and mag) trust logits; no calibration matrix, no ECF."""
+    cal = model.calibration
+    axes = int(cal.axes)
+    nets = [("gyro", cal.gyro_net), ("trust", cal.trust_net)]
+    layers = {s: _tcn_layers(net, f"calibration.{s}_net") for s, net in nets}
+    arch = [[(tuple(w.shape), d) for w, _, d in layers[s]] for s, _ in nets]
+    if arch[0][1:] != arch[1][1:] or arch[0][0][0][0] != arch[1][0][0][0]:
+        raise ExportError("residual model: the gyro and trust networks must share channels, kernel_size and dilations")
+    c_last = cal.gyro_net.out.weight.shape[1]
+    w_out = torch.zeros(axes, 2 * c_last, dtype=torch.float64)
+    w_trust = torch.zeros(2, 2 * c_last, dtype=torch.float64)
+    b_out = torch.zeros(axes, dtype=torch.float64)
+    b_trust = torch.zeros(2, dtype=torch.float64)
+    w_out[0:3, :c_last] = cal.gyro_net.out.weight.detach().double()[:, :, 0]
+    b_out[0:3] = cal.gyro_net.out.bias.detach().double()
+    n_trust = cal.trust_net.out.weight.shape[0]
+    w_trust[:n_trust, c_last:] = cal.trust_net.out.weight.detach().double()[:, :, 0]
+    b_trust[:n_trust] = cal.trust_net.out.bias.detach().double()
+    return {
+        "axes": axes, "groups": 2, "sensors": ["gyro", "trust"],
+        "first_weight": torch.cat([layers["gyro"][0][0], layers["trust"][0][0]], 0),
+        "first_bias": torch.cat([layers["gyro"][0][1], layers["trust"][0][1]], 0),
+        "first_dilation": layers["gyro"][0][2], "kernel_size": int(layers["gyro"][0][0].shape[2]),
+        "hidden": [(torch.cat([layers["gyro"][i][0], layers["trust"][i][0]], 0),
+                    torch.cat([layers["gyro"][i][1], layers["trust"][i][1]], 0), layers["gyro"][i][2])
+                   for i in range(1, len(layers["gyro"]))],
+        "out_weight": w_out, "trust_weight": w_trust, "out_bias": b_out, "trust_bias": b_trust,
+        "calib_matrix": torch.zeros(axes, axes, dtype=torch.float64),
+        "input_mean": torch.zeros(axes, dtype=torch.float64),
+        "input_std": 1.0 / cal.input_scale.detach().double(),
+        "ecf": False, "preintegration": "none", "acc_gain": torch.zeros(3, dtype=torch.float64),
+        "mag_gain": torch.zeros(3, dtype=torch.float64), "use_acc": False, "use_mag": False,
+    }
