@@ -465,7 +465,7 @@ class BackboneStreaming:
         self._use_mag = bool(loop.use_mag) and c == 9
         self._p = np.asarray(loop.params.vector())
         self._params = loop.params
-        self._bias0 = loop.bias_init.detach().double().numpy().copy()
+        self._bias0 = loop.bias_prior * loop.bias_init.detach().double().numpy().copy()
         self._knobs = np.asarray([cal.gyro_scale, cal.gyro_clip, loop.trust_max, loop.trust_weight,
                                   loop.acc_trust_scale, loop.mag_trust_scale, loop.bias_trust_scale,
                                   -1.0, float(self._use_mag), 0.0], dtype=np.float64)

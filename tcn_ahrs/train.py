@@ -244,8 +244,7 @@ def _select_knobs(ckpt_path: str, val_seqs, run_dir: Path) -> Dict[str, float]:
     atomic_save(ck, ckpt_path)
     (run_dir / "knobs.json").write_text(json.dumps({"chosen": chosen, "on": [s.name for s in val_seqs],
                                                      "table": table}, indent=1))
-    ref = next(r for r in table if r["knobs"]["trust_weight"] == 0.0 and r["knobs"]["gyro_clip"] == 0.0
-               and r["knobs"]["acc_trust_scale"] == 1.0)
+    ref = next(r for r in table if r["reference"])
     print(f"inference knobs chosen on the {len(val_seqs)} validation recordings: {chosen} (mean AAE "
           f"{table[0]['aae_deg']:.2f} / inclination {table[0]['inclination_deg']:.2f} deg; the tuned backbone "
           f"alone {ref['aae_deg']:.2f} / {ref['inclination_deg']:.2f}); table in {run_dir / 'knobs.json'}")

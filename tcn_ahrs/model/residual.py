@@ -35,7 +35,7 @@ from .tcn import TCN
 
 FIELD_SCALE = 50.0  # µT: the Earth's field is 22–67 µT
 RESIDUAL_KEYS = {"gyro_scale", "gyro_clip", "acc_trust_scale", "mag_trust_scale", "bias_trust_scale", "trust_max",
-                 "trust_weight", "backbone"}
+                 "trust_weight", "bias_prior", "backbone"}
 
 
 class ResidualCalibration(nn.Module):
@@ -96,7 +96,7 @@ class BackboneLoop(nn.Module):
 
     def __init__(self, use_mag: bool, acc_trust_scale: float = 1.0, mag_trust_scale: float = 1.0,
                  bias_trust_scale: float = 1.0, trust_max: float = 2.0, trust_weight: float = 1.0,
-                 backbone: Optional[Mapping[str, float]] = None):
+                 backbone: Optional[Mapping[str, float]] = None, bias_prior: float = 1.0):
         super().__init__()
         self.trust_max = float(trust_max)
         self.trust_weight = float(trust_weight)
@@ -104,6 +104,7 @@ class BackboneLoop(nn.Module):
         self.acc_trust_scale = float(acc_trust_scale)
         self.mag_trust_scale = float(mag_trust_scale)
         self.bias_trust_scale = float(bias_trust_scale)
+        self.bias_prior = float(bias_prior)  # multiplies bias_init: 0 = VQF's zero start
         self.params = bb.BackboneParams.from_mapping(dict(backbone or {}))
         # the bias estimate's starting point (rad/s): the training recordings' estimated gyro bias
         # (train.init_gyro_bias), a prior the backbone keeps estimating from (zero: VQF's start)
@@ -142,7 +143,7 @@ class BackboneLoop(nn.Module):
             q = so3.quat_mul(m_from_n, torch.as_tensor(q)).numpy()
         out = bb.run(g, a, m, d, self.params, q0=q, acc_trust=tr["acc_trust"][0, start:].cpu().numpy(),
                      mag_trust=tr["mag_trust"][0, start:].cpu().numpy(),
-                     bias_trust=tr["bias_trust"][0, start:].cpu().numpy(), bias0=self.bias_init.cpu().numpy())
+                     bias_trust=tr["bias_trust"][0, start:].cpu().numpy(), bias0=self.bias_prior * self.bias_init.cpu().numpy())
         quat = torch.as_tensor(out["quat"])
         if m_from_n is not None:
             quat = so3.quat_mul(so3.quat_conj(m_from_n).expand_as(quat), quat)
