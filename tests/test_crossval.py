@@ -48,7 +48,7 @@ def test_crossval_runs_every_fold(tmp_path):
 
 
 def test_inner_validation_never_holds_the_outer_fold(tmp_path):
-    """Nested folds: with >= 4 folds the next fold validates, whole; with fewer, the later parts of
+    """Nested folds: with >= 3 folds the next fold validates, whole; with fewer, the later parts of
     the other recordings; the outer fold is in neither."""
     from tcn_ahrs.crossval import _fold_cfg, inner_split
 
