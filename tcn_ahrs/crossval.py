@@ -151,7 +151,9 @@ def untrained_main(cfg: DictConfig) -> Dict[str, Any]:
                 row[part] = res["methods"]["untrained"]["mean"]["aae_deg"]
             print(f"fold {i} {v}: AAE training {row['training']:.2f}, held out {row['held out']:.2f}", flush=True)
             rows.append(row)
-    out = Path(str(cv.get("out") or f"runs/crossval/{cfg.data.name}"))
+    # one folder per data x model variant: a finished fold is reused, so broad9 and broad6 (or the
+    # closed loop and the residual model) must not share one
+    out = Path(str(cv.get("out") or f"runs/crossval/{cfg.data.name}_{cfg.model.variant}"))
     out.mkdir(parents=True, exist_ok=True)
     lines = [f"# Untrained closed loop on {cfg.data.name}: mean AAE (deg) per fold\n",
              "| fold | model.closed_loop overrides | training recordings | held-out recordings |",

@@ -42,7 +42,7 @@ def test_quick_run_fields_and_files(tmp_path):
     assert any(n.startswith("CompiledStreaming.run") for n in names)
     assert all(_finite_pos(r["median_ms"]) for r in inf["rows"])
     assert isinstance(inf["goal_met"], bool) and _finite_pos(inf["gemm_peak_gflops"])
-    assert inf["model"].startswith("checkpoints/broad9.ckpt")  # the shipped model, not a stand-in
+    assert inf["model"].startswith("checkpoints/closed_loop/broad9.ckpt")  # the shipped model, not a stand-in
 
     st = res["streaming"]
     for name in ("TorchScript step (9-axis)", "CompiledStreaming step (numba, 9-axis)"):

@@ -16,7 +16,7 @@ Sections (each one table, with ratios against the thing it should be compared wi
   times the paper's open-loop model (16 x 3000 windows, increment loss; CUDA fp32 / tf32 /
   cuda_graphs).
 * ``inference`` — one minute of 100 Hz 9-axis data (6000 samples) through the shipped model
-  (``checkpoints/broad9.ckpt``): evaluation's path (``LearnedAHRS.run_sequence``, the loop
+  (``checkpoints/closed_loop/broad9.ckpt``): evaluation's path (``LearnedAHRS.run_sequence``, the loop
   compiled by numba), the exported TorchScript batch and streaming modules, the numba
   :class:`~tcn_ahrs.streaming.CompiledStreaming`, the networks alone with their GFLOP/s next to
   this core's measured matrix-product peak, and the loop as tensor ops for the ratio; 1 CPU

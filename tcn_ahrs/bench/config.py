@@ -20,7 +20,7 @@ DEFAULTS: Dict[str, Any] = {
         "window": 1000,
         "batch_size": 32,
         "stride": 500,             # window-start spacing; epoch = all starts (tcn_ahrs.data.window_starts)
-        "epochs": 12,              # the shipped CPU schedule (checkpoints/broad9.md)
+        "epochs": 12,              # the shipped CPU schedule (checkpoints/closed_loop/broad9.md)
         "rate": 285.71,            # BROAD sampling rate, Hz (synthetic data)
         "variants_cpu": ["eager", "tensor_scan", "threads1", "bf16", "compile"],
         # model=paper also: loss_fp32 (CPU); fp32, tf32, cuda_graphs (CUDA)
@@ -38,9 +38,9 @@ DEFAULTS: Dict[str, Any] = {
     },
     # the shipped checkpoints (default architecture with synthetic weights where one is missing)
     "inference": {"samples": 6000, "rate": 100.0, "warmup": 3, "repeats": 20, "max_seconds": 10.0, "threads": 1,
-                  "ckpt": "checkpoints/broad9.ckpt", "goal_ms": 15.0},
+                  "ckpt": "checkpoints/closed_loop/broad9.ckpt", "goal_ms": 15.0},
     "streaming": {"axes": [9, 6], "samples": 3000, "warmup": 300, "rate": 100.0, "threads": 1, "chunk": 100,
-                  "ckpts": {"9": "checkpoints/broad9.ckpt", "6": "checkpoints/tumvi6.ckpt"}, "riann": True,
+                  "ckpts": {"9": "checkpoints/closed_loop/broad9.ckpt", "6": "checkpoints/closed_loop/tumvi6.ckpt"}, "riann": True,
                   "goal_samples_per_s": 25_000.0, "goal_chunk_samples_per_s": 1_000_000.0},
     "filters": {"samples": 6000, "rate": 100.0, "batches": [1, 64], "repeats": 1, "threads": 1,
                 "filters": ["ecf", "mahony", "madgwick", "eskf"], "peers": ["vqf", "imufusion"]},

@@ -1,5 +1,5 @@
 """Speed of batch inference and of streaming (per-sample step, chunked step, RIANN) for the
-shipped model (``checkpoints/broad9.ckpt`` / ``tumvi6.ckpt``; the default architecture with
+shipped model (``checkpoints/closed_loop/broad9.ckpt`` / ``tumvi6.ckpt``; the default architecture with
 non-trivial weights where a checkpoint is missing)."""
 from __future__ import annotations
 
