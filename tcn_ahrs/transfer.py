@@ -57,9 +57,10 @@ def score_cell(ckpt: str, label: str, seqs, axes: int, baselines: Sequence[str])
     best_incl = min((v["inclination_deg"] for v in classical.values() if v["inclination_deg"] is not None),
                     default=None)
     backbone = next((v for k, v in means.items() if k.startswith("backbone")), None)
+    # compared at the tables' 0.01 deg rounding (a fallback equal to a classical filter is not worse)
     never_worse = (learned["aae_deg"] is not None and best is not None
-                   and learned["aae_deg"] <= classical[best]["aae_deg"]
-                   and (best_incl is None or learned["inclination_deg"] <= best_incl))
+                   and round(learned["aae_deg"], 2) <= round(classical[best]["aae_deg"], 2)
+                   and (best_incl is None or round(learned["inclination_deg"], 2) <= round(best_incl, 2)))
     return {"learned": learned, "backbone": backbone, "best": best, "best_metrics": classical.get(best),
             "best_inclination_deg": best_incl, "never_worse": bool(never_worse), "all": means,
             "recordings": [s.name for s in seqs]}
