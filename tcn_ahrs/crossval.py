@@ -65,13 +65,22 @@ def inner_split(cfg: DictConfig, folds: List[list], i: int, fcfg: DictConfig) ->
 def release_knobs(fold_knobs: List[List[dict]]) -> Dict[str, Any]:
     """The residual knobs for a released model: each point's criterion (worse ratio to the tuned
     backbone, :func:`tcn_ahrs.tuning.select_residual_knobs`) averaged over the folds' inner
-    validation tables; the lowest wins."""
+    validation tables; the lowest wins if it beats the tuned backbone (the tables' reference point,
+    criterion 1) by the selection's margin (:data:`tcn_ahrs.tuning.RESIDUAL_KNOB_MARGIN`)."""
+    from .tuning import RESIDUAL_KNOB_MARGIN
+
     scores: Dict[tuple, List[float]] = {}
+    reference = None
     for table in fold_knobs:
         for row in table:
-            scores.setdefault(tuple(sorted(row["knobs"].items())), []).append(float(row["score"]))
+            key = tuple(sorted(row["knobs"].items()))
+            scores.setdefault(key, []).append(float(row["score"]))
+            if row.get("reference"):
+                reference = key
     n = max(len(v) for v in scores.values())
     best = min((k for k, v in scores.items() if len(v) == n), key=lambda k: float(np.mean(scores[k])))
+    if reference is not None and float(np.mean(scores[best])) >= 1.0 - RESIDUAL_KNOB_MARGIN:
+        best = reference
     return {"knobs": dict(best), "score": float(np.mean(scores[best])), "folds": n}
 
 
@@ -199,6 +208,14 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
         else:
             best = Path(done.read_text().strip())
             print(f"== fold {i}: reusing {best}")
+            if cv.get("reselect") and (run_dir / "knobs.json").is_file():
+                # the residual model's inference knobs chosen again (e.g. after a change of the
+                # grid or criterion) on the same inner validation set, without training again
+                from .train import _select_knobs
+
+                _, val_seqs, inner = inner_split(cfg, folds, i, fcfg)
+                print(f"   re-choosing the inference knobs on the {inner}")
+                _select_knobs(str(best), val_seqs, run_dir)
         eval_seqs = [s for s in load_split(fcfg.data, "val") if s.has_gt]
         tune_seqs = load_split(fcfg.data, "train") if cv.get("tune") else []
         # nested: the epoch (or the residual model's knobs) was chosen on the inner validation
