@@ -246,6 +246,16 @@ if AVAILABLE:
             out[k, 4], out[k, 5], out[k, 6] = gx - s[_BB_S_BIAS], gy - s[_BB_S_BIAS + 1], gz - s[_BB_S_BIAS + 2]
 
 
+def _check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
+    """ValueError unless every reading is finite and every (used) step is finite and > 0."""
+    if not np.isfinite(xs).all():
+        i = [int(v) for v in np.argwhere(~np.isfinite(xs))[0]]
+        raise ValueError(f"sample: non-finite value at index {i} (expected finite readings: drop or "
+                         "interpolate that sample)")
+    if dts.size and not (np.isfinite(dts).all() and (dts > 0.0).all()):
+        raise ValueError(f"dt: expected finite time steps > 0 s since the previous sample, got {dts.tolist()}")
+
+
 def _flat_networks(ts, head_weight, head_bias, head_matrix, window: int = 1, use_acc: bool = False,
                    use_mag: bool = False):
     """The folded networks of an exported streaming module ``ts`` (:class:`StreamingAHRS`) as the
@@ -367,14 +377,8 @@ class CompiledStreaming:
         self._ts._reset_rings()  # zeros; the raw-sample ring holds the input mean (= causal zero padding)
 
     def _check(self, xs: np.ndarray, dts: np.ndarray) -> None:
-        if not np.isfinite(xs).all():
-            i = tuple(int(v) for v in np.argwhere(~np.isfinite(xs))[0])
-            raise ValueError(f"sample: non-finite value at index {list(i)} (expected finite readings: drop or "
-                             "interpolate that sample)")
-        first = 1 if self._state[0] == 0.0 else 0
-        later = dts[first:]
-        if later.size and not (np.isfinite(later).all() and (later > 0.0).all()):
-            raise ValueError(f"dt: expected finite time steps > 0 s since the previous sample, got {later.tolist()}")
+        # the dt of the first sample after reset is not used by the closed loop
+        _check_samples(xs, dts[1:] if self._state[0] == 0.0 else dts)
 
     def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
         """One sample (C,) -> (quat (4,), omega (3,))."""
@@ -498,12 +502,7 @@ class BackboneStreaming:
         self._state[self._bb.K.S_BIAS:self._bb.K.S_BIAS + 3] = self._bias0
 
     def _check(self, xs: np.ndarray, dts: np.ndarray) -> None:
-        if not np.isfinite(xs).all():
-            i = [int(v) for v in np.argwhere(~np.isfinite(xs))[0]]
-            raise ValueError(f"sample: non-finite value at index {i} (expected finite readings: drop or "
-                             "interpolate that sample)")
-        if not (np.isfinite(dts).all() and (dts > 0.0).all()):
-            raise ValueError(f"dt: expected finite time steps > 0 s, got {dts.tolist()}")
+        _check_samples(xs, dts)  # every dt is used (the backbone integrates sample 0)
 
     def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
         """One sample (C,) -> (quat (4,), omega (3,))."""

@@ -194,6 +194,7 @@ def tune_gradient(
     and ground truth on scored samples (the first ``window`` samples of each recording if given,
     to keep the backward pass short). Returns the tuned parameters and the loss history.
     """
+    from . import so3
 
     est = estimator_cls.with_params(**fixed) if isinstance(estimator_cls, ClassicalEstimator) else estimator_cls(**fixed)
     start = {k: float(getattr(est, k)) for k in params}
