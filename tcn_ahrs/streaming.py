@@ -130,6 +130,16 @@ if AVAILABLE:
             v[r] = m - e
 
     @numba.njit(cache=True)
+    def _scratch(ints):  # pragma: no cover - compiled
+        """The per-call work arrays of :func:`_networks` for the layout ``ints``: layer inputs and
+        outputs (float64), taps and pre-activations (float32), the head's rows."""
+        width = ints[0]
+        for li in range(ints[2]):
+            width = max(width, ints[_HEADER + _PER_LAYER * li] * ints[_HEADER + _PER_LAYER * li + 2])
+        return (np.empty(max(width, ints[6])), np.empty(max(width, ints[6])),
+                np.empty(ints[1] * width, dtype=np.float32), np.empty(width, dtype=np.float32), np.empty(ints[7]))
+
+    @numba.njit(cache=True)
     def _steps(xs, dts, feats, params, wts, cfg, ints, state, rings, out):  # pragma: no cover - compiled
         """Samples xs (k, C) with steps dts (k,) through the networks (:func:`_networks`) and the
         filter; writes [quat (4), omega (3)] per sample into out (k, 7) and advances state and
@@ -137,14 +147,7 @@ if AVAILABLE:
         (then the networks are skipped), or an empty (0, H) array."""
         c, nl, w = ints[0], ints[2], ints[3]
         use_acc, use_mag, n_head = ints[4] != 0, ints[5] != 0, ints[7]
-        width = c
-        for li in range(nl):
-            width = max(width, ints[_HEADER + _PER_LAYER * li] * ints[_HEADER + _PER_LAYER * li + 2])
-        h_in = np.empty(max(width, ints[6]))
-        h_out = np.empty(max(width, ints[6]))
-        tap = np.empty(ints[1] * width, dtype=np.float32)
-        pre = np.empty(width, dtype=np.float32)
-        v = np.empty(n_head)
+        h_in, h_out, tap, pre, v = _scratch(ints)
         no_feats = np.empty(0)
         for k in range(xs.shape[0]):
             t = int(state[0])
@@ -200,15 +203,7 @@ if AVAILABLE:
         :mod:`tcn_ahrs.kernels.backbone`). knobs: [gyro_scale, gyro_clip, trust_max, trust_weight,
         acc, mag, bias trust scale, last dt, use_mag]; m_conj (4,): the magnetic frame's
         conjugate (9D; identity for 6D), applied to the output. out (k, 7): quat, omega."""
-        c, nl = ints[0], ints[2]
-        width = c
-        for li in range(nl):
-            width = max(width, ints[_HEADER + _PER_LAYER * li] * ints[_HEADER + _PER_LAYER * li + 2])
-        h_in = np.empty(max(width, ints[6]))
-        h_out = np.empty(max(width, ints[6]))
-        tap = np.empty(ints[1] * width, dtype=np.float32)
-        pre = np.empty(width, dtype=np.float32)
-        v = np.empty(ints[7])
+        h_in, h_out, tap, pre, v = _scratch(ints)
         no_feats = np.empty(0)
         g_scale, g_clip, t_max, t_w = knobs[0], knobs[1], knobs[2], knobs[3]
         use_mag = knobs[8] > 0.5
@@ -244,6 +239,26 @@ if AVAILABLE:
             out[k, 0], out[k, 1], out[k, 2], out[k, 3] = _bb_qmul(m_conj[0], m_conj[1], m_conj[2], m_conj[3],
                                                                   w, qx, qy, qz)
             out[k, 4], out[k, 5], out[k, 6] = gx - s[_BB_S_BIAS], gy - s[_BB_S_BIAS + 1], gz - s[_BB_S_BIAS + 2]
+
+
+def _one_sample(stream, sample, dt) -> np.ndarray:
+    """One sample as a checked (1, C) array; its dt stored in ``stream._dt1``."""
+    x = np.asarray(sample, dtype=np.float64).reshape(1, -1)
+    if x.shape[1] != stream.axes:
+        raise ValueError(f"sample: expected {stream.axes} values, got {x.shape[1]}")
+    stream._dt1[0] = dt
+    stream._check(x, stream._dt1)
+    return x
+
+
+def _chunk(stream, samples, dt) -> Tuple[np.ndarray, np.ndarray]:
+    """k samples as a checked (k, C) array and their (k,) steps."""
+    xs = np.ascontiguousarray(np.asarray(samples, dtype=np.float64))
+    if xs.ndim != 2 or xs.shape[1] != stream.axes:
+        raise ValueError(f"samples: expected shape (k, {stream.axes}), got {list(xs.shape)}")
+    dts = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],)))
+    stream._check(xs, dts)
+    return xs, dts
 
 
 def _check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
@@ -382,21 +397,13 @@ class CompiledStreaming:
 
     def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
         """One sample (C,) -> (quat (4,), omega (3,))."""
-        x = np.asarray(sample, dtype=np.float64).reshape(1, -1)
-        if x.shape[1] != self.axes:
-            raise ValueError(f"sample: expected {self.axes} values, got {x.shape[1]}")
-        self._dt1[0] = dt
-        self._check(x, self._dt1)
+        x = _one_sample(self, sample, dt)
         _steps(x, self._dt1, self._no_feats, self._params, self._wts, self._cfg, self._ints, self._state, self._rings, self._out1)
         return self._out1[0, 0:4].copy(), self._out1[0, 4:7].copy()
 
     def step_chunk(self, samples, dt: Union[float, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
         """k samples (k, C) -> (quat (k, 4), omega (k, 3)): what k calls of :meth:`step` return."""
-        xs = np.ascontiguousarray(np.asarray(samples, dtype=np.float64))
-        if xs.ndim != 2 or xs.shape[1] != self.axes:
-            raise ValueError(f"samples: expected shape (k, {self.axes}), got {list(xs.shape)}")
-        dts = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],)))
-        self._check(xs, dts)
+        xs, dts = _chunk(self, samples, dt)
         out = np.empty((xs.shape[0], 7))
         feats = self._no_feats
         if xs.shape[0] >= self.chunk_networks and self._ts.groups > 0:
@@ -506,11 +513,7 @@ class BackboneStreaming:
 
     def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
         """One sample (C,) -> (quat (4,), omega (3,))."""
-        x = np.asarray(sample, dtype=np.float64).reshape(1, -1)
-        if x.shape[1] != self.axes:
-            raise ValueError(f"sample: expected {self.axes} values, got {x.shape[1]}")
-        self._dt1[0] = dt
-        self._check(x, self._dt1)
+        x = _one_sample(self, sample, dt)
         if self._state is None:
             self._start(x[0])
         _backbone_steps(x, self._dt1, self._no_feats, self._nparams, self._wts, self._ints, self._rings, self._p,
@@ -519,11 +522,7 @@ class BackboneStreaming:
 
     def step_chunk(self, samples, dt: Union[float, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
         """k samples (k, C) -> (quat (k, 4), omega (k, 3)): what k calls of :meth:`step` return."""
-        xs = np.ascontiguousarray(np.asarray(samples, dtype=np.float64))
-        if xs.ndim != 2 or xs.shape[1] != self.axes:
-            raise ValueError(f"samples: expected shape (k, {self.axes}), got {list(xs.shape)}")
-        dts = np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=np.float64), (xs.shape[0],)))
-        self._check(xs, dts)
+        xs, dts = _chunk(self, samples, dt)
         if xs.shape[0] == 0:
             return np.zeros((0, 4)), np.zeros((0, 3))
         if self._state is None:
