@@ -179,7 +179,7 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
     from .compare import compare
     from .estimators import registry
     from .datasets import load_split
-    from .train import train_main
+    from .train import model_axes, train_main
 
     cv = cfg.crossval
     if cv.get("untrained"):
@@ -224,7 +224,9 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
         knobs_file = run_dir / "knobs.json"
         if knobs_file.is_file():
             fold_knobs.append(json.loads(knobs_file.read_text())["table"])
-        res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=int(cfg.data.get("axes", 9)),
+        # the baselines read what the learned model reads: a 6-axis model on 9-axis data (broad6)
+        # is compared with the 6D filters, not with filters that use the magnetometer
+        res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=model_axes(cfg),
                       both_axes=False, tune=bool(cv.get("tune")), ckpts=ckpts,
                       out_dir=run_dir / "eval", dataset=str(cfg.data.name),
                       tune_max_seconds_per_recording=cv.get("tune_max_seconds_per_recording"), progress=True)
