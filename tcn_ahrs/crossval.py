@@ -211,11 +211,11 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
             if cv.get("reselect") and (run_dir / "knobs.json").is_file():
                 # the residual model's inference knobs chosen again (e.g. after a change of the
                 # grid or criterion) on the same inner validation set, without training again
-                from .train import _select_knobs
+                from .train import choose_knobs_into_checkpoint
 
                 _, val_seqs, inner = inner_split(cfg, folds, i, fcfg)
                 print(f"   re-choosing the inference knobs on the {inner}")
-                _select_knobs(str(best), val_seqs, run_dir)
+                choose_knobs_into_checkpoint(str(best), val_seqs, run_dir)
         eval_seqs = [s for s in load_split(fcfg.data, "val") if s.has_gt]
         tune_seqs = load_split(fcfg.data, "train") if cv.get("tune") else []
         # nested: the epoch (or the residual model's knobs) was chosen on the inner validation

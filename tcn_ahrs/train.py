@@ -226,7 +226,7 @@ def _aae_deg(rot_gt: torch.Tensor, rot_est: torch.Tensor) -> torch.Tensor:
     return torch.sqrt((err ** 2).sum(-1).mean()) * (180.0 / math.pi)
 
 
-def _select_knobs(ckpt_path: str, val_seqs, run_dir: Path) -> Dict[str, float]:
+def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path) -> Dict[str, float]:
     """Choose the residual model's inference knobs (:func:`tcn_ahrs.tuning.select_residual_knobs`)
     on ``val_seqs`` and write them into the checkpoint's model config (atomically; the
     checkpoint then IS the selected model); the table goes to ``run_dir/knobs.json``."""
@@ -467,7 +467,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
         best = last
         result["best"] = last
         if cfg.train.get("select_knobs", True) and dm.val_seqs:
-            result["knobs"] = _select_knobs(last, dm.val_seqs, run_dir)
+            result["knobs"] = choose_knobs_into_checkpoint(last, dm.val_seqs, run_dir)
     print(f"training took {fit_s:.1f} s; best checkpoint {best} ({monitor} = {ckpt_cb.best_model_score})")
     done_epochs = int(trainer.current_epoch)
     if cfg.train.get("max_time") and done_epochs < int(cfg.train.epochs):

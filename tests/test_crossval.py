@@ -85,3 +85,38 @@ def test_untrained_mode_scores_each_variant_on_training_and_held_out_recordings(
     assert rows[0]["training"] == pytest.approx(rows[2]["held out"])
     assert all(np.isfinite([r["training"], r["held out"]]).all() for r in rows)
     assert (out / "untrained.md").is_file() and not (out / "fold0").exists()
+
+
+def test_residual_model_chooses_its_knobs_on_the_inner_fold_and_can_choose_again(tmp_path):
+    """model=residual: each outer fold's checkpoint carries knobs chosen on the inner fold
+    (knobs.json beside it names those recordings, never the outer ones); crossval.reselect
+    chooses again without training; release_knobs is one point of the grid."""
+    import json
+
+    from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint
+    from tcn_ahrs.tuning import residual_knob_points
+
+    for i, prof in enumerate(["slow_rotation", "walking", "fast_rotation"]):
+        _write(tmp_path / f"r{i}.csv", simulate(prof, 30.0, 50.0, seed=i))
+    out = tmp_path / "cv"
+    overrides = ["data=generic", f"data.root={tmp_path}", "data.train=[r0,r1,r2]", "data.folds=[[r0],[r1],[r2]]",
+                 "model=residual", "train.epochs=1", "train.window=200", "train.stride=100", "train.batch_size=4",
+                 "train.tune_backbone=false", "model.tcn.channels=[4,4,4,4]", "trainer.enable_progress_bar=false",
+                 "threads=1", "crossval.methods=[raw]", "crossval.peers=false", f"crossval.out={out}"]
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("crossval", overrides=overrides)
+    res = crossval_main(cfg)
+    points = [tuple(sorted(p.items())) for p in residual_knob_points()]
+    assert tuple(sorted(res["release_knobs"]["knobs"].items())) in points
+    for i in range(3):
+        knobs = json.loads((out / f"fold{i}" / "knobs.json").read_text())
+        assert knobs["on"] == [f"r{(i + 1) % 3}"]
+        meta = checkpoint_meta(load_checkpoint(out / f"fold{i}" / "checkpoints" / "last.ckpt"))
+        assert {k: meta["model"]["residual"][k] for k in knobs["chosen"]} == knobs["chosen"]
+    trained = (out / "fold0" / "TRAINED").stat().st_mtime_ns
+    chosen = (out / "fold0" / "knobs.json").stat().st_mtime_ns
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("crossval", overrides=overrides + ["crossval.reselect=true"])
+    crossval_main(cfg)
+    assert (out / "fold0" / "TRAINED").stat().st_mtime_ns == trained  # not trained again
+    assert (out / "fold0" / "knobs.json").stat().st_mtime_ns > chosen  # the knobs chosen again
