@@ -84,12 +84,23 @@ def file_sha256(path) -> str:
     return h.hexdigest()
 
 
+def _normalisation(cal: nn.Module) -> Dict[str, Any]:
+    """The input normalisation folded into the networks: the training set's statistics, or the
+    residual model's fixed physical scales (mean 0, std = 1 / scale)."""
+    if hasattr(cal, "input_mean"):
+        mean, std = list(cal.input_mean), list(cal.input_std)
+    else:
+        mean, std = [0.0] * len(cal.input_scale), list(1.0 / cal.input_scale)
+    return {"included": True, "mean": [float(v) for v in mean], "std": [float(v) for v in std]}
+
+
 def build_metadata(model: nn.Module, mode: str, meta: Optional[Mapping[str, Any]] = None,
                    net_dtype: torch.dtype = NETWORK_DTYPE) -> Dict[str, Any]:
     """The exported file's self-description (plain JSON types). ``meta`` adds or overrides
     entries (``rate_hz``, ``checkpoint``, ``checkpoint_sha256``, ``model_config``, ``data``)."""
     axes = int(model.axes)
     ecf = model.ecf
+    backbone = getattr(model, "backbone", None) is not None
     md: Dict[str, Any] = {
         "format": "tcn-ahrs TorchScript export",
         "mode": mode,
@@ -108,15 +119,14 @@ def build_metadata(model: nn.Module, mode: str, meta: Optional[Mapping[str, Any]
         "frames": {"imu": "body (sensor) frame", "attitude": "nav_from_body", "navigation": "ENU"},
         "quaternion_order": "wxyz",
         "quaternion_convention": "Hamilton, scalar first, w >= 0",
-        "input_normalisation": {
-            "included": True,
-            "mean": [float(v) for v in model.calibration.input_mean],
-            "std": [float(v) for v in model.calibration.input_std]},
+        "input_normalisation": _normalisation(model.calibration),
         "dtype": {"network": str(net_dtype).replace("torch.", ""), "calibration_ecf_integration": "float64"},
         "api": ({"forward": "quat (N,4), omega (N,3) = m(imu (N,C), dt float|(N,), q0 (4,))"} if mode == "batch" else
                 {"reset": "m.reset(q0 (4,))",
-                 "step": "quat (4,), omega (3,) = m.step(sample (C,), dt float)  (dt unused on the first call)",
-                 "step_chunk": "quat (k,4), omega (k,3) = m.step_chunk(samples (k,C), dt float|(k,))  (closed loop)",
+                 "step": "quat (4,), omega (3,) = m.step(sample (C,), dt float)  (dt "
+                         + ("used" if backbone else "unused") + " on the first call)",
+                 "step_chunk": "quat (k,4), omega (k,3) = m.step_chunk(samples (k,C), dt float|(k,))  "
+                               "(closed loop, backbone)",
                  "run": "quat (N,4), omega (N,3) = m.run(imu (N,C), dt float|(N,), q0 (4,))"}),
         "checkpoint": None,
         "checkpoint_sha256": None,
@@ -137,18 +147,21 @@ def _script(module: nn.Module, freeze: bool = True):
         keep = [n for n in ("metadata", "errors", "corrected_rate", "reset", "step", "step_chunk", "run") if scripted._c._has_method(n)]
         # state written in place by several methods stays one attribute: frozen, each method would
         # get its own constant copy once saved and loaded (reset would not clear what step_chunk reads)
-        keep += [n for n in ("first_buffer", "ring_buffers", "rest_ring") if scripted._c.hasattr(n)]
+        keep += [n for n in ("first_buffer", "ring_buffers", "rest_ring", "backbone_state", "coeff")
+                 if scripted._c.hasattr(n)]
         return torch.jit.freeze(scripted, preserved_attrs=keep)
 
 
 def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str):
     model = model.eval()
-    if getattr(model, "backbone", None) is not None:
-        raise ExportError("a model on the VQF-grade backbone (model.loop=backbone) has no TorchScript export "
-                          "yet: run it with scripts/evaluate.py (the numba backbone); the exports cover "
-                          "model.loop=closed and open")
     md = build_metadata(model, mode, meta, net_dtype)
-    if getattr(model, "closed", None) is not None:
+    if getattr(model, "backbone", None) is not None:
+        if net_dtype != torch.float32:
+            raise ExportError("the residual model's export runs its networks in float32 (net_dtype=float32)")
+        from .backbone import ResidualBatch, ResidualStreaming
+
+        module = (ResidualStreaming if mode == "streaming" else ResidualBatch)(model, md).eval()
+    elif getattr(model, "closed", None) is not None:
         if net_dtype != torch.float32:
             raise ExportError("the closed-loop export runs its networks in float32 (net_dtype=float32)")
         cls = ClosedLoopStreaming if mode == "streaming" else ClosedLoopBatch
