@@ -244,3 +244,35 @@ def test_compiled_streaming_refuses_bad_samples_before_any_state_change():
     qa, _ = a.step_chunk(imu[100:200], 0.01)
     qb, _ = b.step_chunk(imu[100:200], 0.01)
     assert np.array_equal(qa, qb)
+
+
+def test_a_recording_at_another_rate_runs_the_default_backbone():
+    """A residual model on a recording at another rate than it was trained at (another device)
+    runs as the backbone with VQF's default parameters and nothing learned (a warning says so);
+    other_rate=model runs the model as trained. Same rate: the model."""
+    import pytest
+
+    seq = _seq()  # 100 Hz
+    model = _trained_like(6)
+    model.backbone.params = bb.BackboneParams(tau_acc=1.0)  # a tuned backbone that must not carry over
+    q0 = np.array([1.0, 0.0, 0.0, 0.0])
+    from tcn_ahrs.estimators.registry import build
+
+    plain = build("backbone", axes=6).run(seq, q0, 0).quat  # the matrix's "backbone" column
+
+    def angle(a, b):
+        return 2.0 * np.arccos(np.clip(np.abs((a * b).sum(-1)), 0.0, 1.0)).max()
+
+    model.trained_rate_hz = 200.0
+    est = LearnedEstimator(model)
+    with pytest.warns(UserWarning, match="another device"):
+        out = est.run(seq, q0, 0)
+    assert np.abs(out.quat - plain).max() < 1e-12 and est.fell_back == ["s"]
+    with pytest.warns(UserWarning, match="trained at 200"):
+        own = LearnedEstimator(model, other_rate="model").run(seq, q0, 0)
+    assert angle(own.quat, plain) > 1e-3
+    model.trained_rate_hz = 100.0
+    same = LearnedEstimator(model).run(seq, q0, 0)
+    assert np.abs(same.quat - own.quat).max() < 1e-12
+    with pytest.raises(ValueError, match="other_rate"):
+        LearnedEstimator(model, other_rate="vqf")

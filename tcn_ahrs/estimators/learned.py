@@ -1,6 +1,8 @@
 """The learned AHRS as an :class:`~tcn_ahrs.estimators.base.Estimator` (wraps a trained checkpoint)."""
 from __future__ import annotations
 
+import copy
+
 import warnings
 from pathlib import Path
 from typing import Optional, Union
@@ -49,8 +51,11 @@ class LearnedEstimator:
         ``rest`` (N,) from the rest detector.
     """
 
+    OTHER_RATE = ("backbone", "model")
+
     def __init__(self, model: Union[LearnedAHRS, str, Path], name: str = "TCN-ECF",
-                 device: Union[str, torch.device] = "cpu", reanchor: Optional[int] = None):
+                 device: Union[str, torch.device] = "cpu", reanchor: Optional[int] = None,
+                 other_rate: str = "backbone"):
         if isinstance(model, (str, Path)):
             self.ckpt_path = str(model)
             model = model_from_checkpoint(model)
@@ -62,6 +67,24 @@ class LearnedEstimator:
         # restart the open-loop ECF from the estimate every `reanchor` samples
         # (LearnedAHRS.run_sequence); None = the paper's single pass
         self.reanchor = None if reanchor is None else check_number(reanchor, "reanchor", int, 1)
+        if other_rate not in self.OTHER_RATE:
+            raise ValueError(f"other_rate: expected one of {self.OTHER_RATE}, got {other_rate!r}")
+        # a recording at another rate than training comes from another device: a residual model
+        # runs there as its backbone with VQF's default parameters (other_rate=backbone), because
+        # what it learned (gyro residual, trusts, tuned gains, bias prior) belongs to its device
+        # and its networks' receptive field is counted in samples
+        self.other_rate = other_rate
+        self._fallback = None
+        self.fell_back: list = []  # names of the recordings run as the backbone
+
+    def _device_fallback(self):
+        """The classical ``backbone`` estimator with VQF's default parameters (the matrix's
+        "backbone" column): nothing learned applied."""
+        if self._fallback is None:
+            from .registry import build
+
+            self._fallback = build("backbone", axes=int(self.model.axes))
+        return self._fallback
 
     @property
     def axes(self) -> int:
@@ -71,9 +94,20 @@ class LearnedEstimator:
             init_index: int = 0) -> EstimatorOutput:
         trained = getattr(self.model, "trained_rate_hz", None)
         if trained and abs(float(seq.rate) / trained - 1.0) > 0.05:
-            warnings.warn(f"{self.name}: recording {seq.name!r} is at {seq.rate:.4g} Hz but the model was trained "
-                          f"at {trained:.4g} Hz: its networks' time scale and rest window assume {trained:.4g} Hz "
-                          "(resample the recording, or train at its rate)", stacklevel=2)
+            if getattr(self.model, "backbone", None) is not None and self.other_rate == "backbone":
+                if not self.fell_back:  # once per model: the list names every recording
+                    warnings.warn(f"{self.name}: recording {seq.name!r} is at {seq.rate:.4g} Hz, the model was "
+                                  f"trained at {trained:.4g} Hz (another device): such recordings run as the "
+                                  "backbone with VQF's default parameters, nothing learned applied "
+                                  "(other_rate=model runs the model anyway)", stacklevel=2)
+                self.fell_back.append(seq.name)
+                out = self._device_fallback().run(seq, init_quat, init_index)
+                out.signals = {**(out.signals or {}), "gyro_correction": np.zeros((len(seq), 3))}
+                return out
+            else:
+                warnings.warn(f"{self.name}: recording {seq.name!r} is at {seq.rate:.4g} Hz but the model was "
+                              f"trained at {trained:.4g} Hz: its networks' time scale and rest window assume "
+                              f"{trained:.4g} Hz (resample the recording, or train at its rate)", stacklevel=2)
         imu = model_input(self.model, seq, self.device, f"model {self.ckpt_path or ''}")
         dt = torch.as_tensor(seq.dt, dtype=imu.dtype, device=self.device)[None]
         start = check_number(init_index, "init_index", int, 0, high=len(seq))
@@ -104,9 +138,9 @@ class LearnedEstimator:
 
 @register("learned", "learned")
 def learned_estimator(ckpt: Union[str, Path], name: str = "Learned", device: Union[str, torch.device] = "cpu",
-                      reanchor: Optional[int] = None) -> LearnedEstimator:
+                      reanchor: Optional[int] = None, other_rate: str = "backbone") -> LearnedEstimator:
     """Registry factory: the checkpoint ``ckpt`` as the column ``name``."""
-    return LearnedEstimator(ckpt, name=name, device=device, reanchor=reanchor)
+    return LearnedEstimator(ckpt, name=name, device=device, reanchor=reanchor, other_rate=other_rate)
 
 
 class OnLearnedCalibration:

@@ -13,7 +13,7 @@ from ..validate import check_keys
 from .reports import print_table
 from .runner import evaluate
 
-EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor"}
+EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor", "other_rate"}
 
 
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
@@ -41,7 +41,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
                          f"'{cfg.data.split}' (root {cfg.data.get('root')})")
     out = str(output_dir(cfg.get("out") or cfg.get("run_dir"), Path("runs") / "evaluate"))
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
-                               reanchor=cfg.get("reanchor"))
+                               reanchor=cfg.get("reanchor"), other_rate=str(cfg.get("other_rate", "backbone")))
     from ..estimators.registry import baseline_estimators, load_plugins
 
     load_plugins(cfg.get("plugins"))
