@@ -129,6 +129,10 @@ def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") 
         model.load_state_dict(state)
     except RuntimeError as e:
         raise CheckpointError(f"{path}: weights do not match the model config stored with them: {e}") from e
+    for name, t in list(model.named_parameters()) + list(model.named_buffers()):
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise CheckpointError(f"{path}: weight '{name}' holds NaN/inf values (a diverged training run?): "
+                                  "use an earlier checkpoint of the run (e.g. best.ckpt) or train again")
     rate = (meta.get("layout") or {}).get("rate_hz") or meta.get("rate_hz")
     model.trained_rate_hz = None if not rate else float(rate)  # checked against the data by LearnedEstimator
     model.eval()

@@ -33,6 +33,18 @@ NORTH_NAV = np.array([0.0, 1.0, 0.0])
 
 DEG = np.pi / 180.0
 
+# ---------------------------------------------------------------- physical input ranges
+# A reading beyond these is no MEMS measurement but a fault (a spike, a wrong unit, a garbled
+# packet): refused by the loader (file, field, sample) and by every streaming runtime before any
+# state changes, because one integrated 1e30 turns every later output into NaN. Each bound sits
+# well above what IMUs measure: gyros to ±4000 °/s (70 rad/s), accelerometers to ±400 g for
+# impacts, magnetometers to ±4900 µT; steps up to one second (an AHRS needs more than 1 Hz).
+MAX_GYRO = 100.0    # rad/s, per axis
+MAX_ACCEL = 4000.0  # m/s², per axis
+MAX_MAG = 10000.0   # µT, per axis
+MAX_DT = 1.0        # s, one time step
+INPUT_RANGES = {"gyro": MAX_GYRO, "accel": MAX_ACCEL, "mag": MAX_MAG}
+
 # ---------------------------------------------------------------- numerics: one float policy
 # Where precision matters is where values are multiplied or summed over many samples: attitude and
 # position integration (products of 10^4-10^6 rotations) and the loss's rotation increments.

@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from .conventions import GRAVITY
+from .conventions import GRAVITY, INPUT_RANGES
 
 
 class DataError(ValueError):
@@ -232,6 +232,17 @@ class ImuSequence:
         if bad.any():
             i = int(np.argmax(bad.reshape(a.shape[0], -1).any(axis=1)))
             self._fail(name, f"expected finite values, found NaN/inf (first at sample {i})")
+        limit = INPUT_RANGES.get(name)
+        if limit is not None and a.size and float(np.max(np.abs(a))) > limit:
+            i, k = (int(v) for v in np.argwhere(np.abs(a) > limit)[0])
+            unit = {"gyro": "rad/s", "accel": "m/s^2", "mag": "uT"}[name]
+            many = float(np.mean(np.abs(a) > limit)) > 0.01
+            why = ({"gyro": "is it in deg/s? declare gyr_unit: deg/s (or convert with conventions.deg_to_rad)",
+                    "accel": "check its unit (m/s^2 expected)",
+                    "mag": "is it in nT? convert with conventions.nt_to_ut"}[name] if many
+                   else "a spike: drop or interpolate that sample")
+            self._fail(name, f"sample {i}, axis {'xyz'[k]}: {a[i, k]:.4g} {unit} is beyond any sensor's range "
+                             f"(|value| <= {limit:g} {unit}, conventions.INPUT_RANGES): {why}")
         return a
 
     def _check_units(self) -> None:

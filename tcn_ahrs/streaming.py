@@ -243,7 +243,10 @@ if AVAILABLE:
 
 def _one_sample(stream, sample, dt) -> np.ndarray:
     """One sample as a checked (1, C) array; its dt stored in ``stream._dt1``."""
-    x = np.asarray(sample, dtype=np.float64).reshape(1, -1)
+    x = np.asarray(sample, dtype=np.float64)
+    if x.ndim != 1:
+        raise ValueError(f"sample: expected shape ({stream.axes},), got {list(x.shape)}")
+    x = x.reshape(1, -1)
     if x.shape[1] != stream.axes:
         raise ValueError(f"sample: expected {stream.axes} values, got {x.shape[1]}")
     stream._dt1[0] = dt
@@ -262,13 +265,24 @@ def _chunk(stream, samples, dt) -> Tuple[np.ndarray, np.ndarray]:
 
 
 def _check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
-    """ValueError unless every reading is finite and every (used) step is finite and > 0."""
+    """ValueError unless every reading is finite and within the physical ranges
+    (:data:`tcn_ahrs.conventions.INPUT_RANGES`) and every (used) step is finite, > 0 and
+    <= :data:`~tcn_ahrs.conventions.MAX_DT` s."""
+    from .conventions import INPUT_RANGES, MAX_DT
+
     if not np.isfinite(xs).all():
         i = [int(v) for v in np.argwhere(~np.isfinite(xs))[0]]
         raise ValueError(f"sample: non-finite value at index {i} (expected finite readings: drop or "
                          "interpolate that sample)")
-    if dts.size and not (np.isfinite(dts).all() and (dts > 0.0).all()):
-        raise ValueError(f"dt: expected finite time steps > 0 s since the previous sample, got {dts.tolist()}")
+    limit = np.array([INPUT_RANGES["gyro"]] * 3 + [INPUT_RANGES["accel"]] * 3 + [INPUT_RANGES["mag"]] * 3)[:xs.shape[1]]
+    if (np.abs(xs) > limit).any():
+        i = [int(v) for v in np.argwhere(np.abs(xs) > limit)[0]]
+        raise ValueError(f"sample: value {xs[i[0], i[1]]:.4g} at index {i} is beyond any sensor's range (|gyro| <= "
+                         f"{INPUT_RANGES['gyro']:g} rad/s, |acc| <= {INPUT_RANGES['accel']:g} m/s^2, |mag| <= "
+                         f"{INPUT_RANGES['mag']:g} uT per axis): a spike; drop or interpolate that sample")
+    if dts.size and not (np.isfinite(dts).all() and (dts > 0.0).all() and (dts <= MAX_DT).all()):
+        raise ValueError(f"dt: expected finite time steps in (0, {MAX_DT:g}] s since the previous sample, got "
+                         f"{dts.tolist()}")
 
 
 def _flat_networks(ts, head_weight, head_bias, head_matrix, window: int = 1, use_acc: bool = False,

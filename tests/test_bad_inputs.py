@@ -44,9 +44,9 @@ def test_exported_modules_refuse_non_finite_readings_and_bad_time_steps(tmp_path
     for bad in (0.0, -0.01, math.nan):
         dt2 = dt.clone()
         dt2[30] = bad
-        with pytest.raises(Exception, match=r"dt: expected finite time steps > 0 s .* at index 30"):
+        with pytest.raises(Exception, match=r"dt: expected finite time steps in \(0, 1\] s .* at index 30"):
             batch(_imu(), dt2, Q0)
-    with pytest.raises(Exception, match=r"dt: expected finite time steps > 0 s .* at index 1"):
+    with pytest.raises(Exception, match=r"dt: expected finite time steps in \(0, 1\] s .* at index 1"):
         batch(_imu(), torch.tensor(-0.01), Q0)  # a scalar tensor is checked like a float
 
 
@@ -64,8 +64,14 @@ def test_streaming_step_error_leaves_the_state_as_if_the_sample_was_not_given(tm
             bad[1] = math.inf
             with pytest.raises(Exception, match=r"sample: non-finite value at index \[1\]"):
                 stream.step(bad, 1.0 / RATE)
-            with pytest.raises(Exception, match="dt: expected a finite time step > 0 s"):
+            with pytest.raises(Exception, match=r"dt: expected a finite time step in \(0, 1\] s"):
                 stream.step(imu[k], -1.0)
+            # finite but impossible: one 1e30 or a dt of 1e6 s would poison every later output
+            bad[1] = 1e30
+            with pytest.raises(Exception, match=r"sample: value beyond any sensor's range at index \[1\]"):
+                stream.step(bad, 1.0 / RATE)
+            with pytest.raises(Exception, match=r"dt: expected a finite time step in \(0, 1\] s"):
+                stream.step(imu[k], 1e6)
         out.append(stream.step(imu[k], 1.0 / RATE)[0])
     torch.testing.assert_close(torch.stack(out), torch.stack(ref), atol=0, rtol=0)
 
@@ -351,3 +357,51 @@ def test_a_recording_at_another_rate_than_the_model_was_trained_at_warns(tmp_pat
     seq = simulate("slow_rotation", 4.0, 100.0, seed=1)
     with pytest.warns(UserWarning, match=r"at 100 Hz but the model was trained at 285.7 Hz"):
         LearnedEstimator(model).run(seq, seq.quat[0])
+
+
+def test_a_finite_spike_in_a_recording_is_refused_with_file_field_and_sample(tmp_path):
+    from tcn_ahrs.sequence import DataError
+
+    def spike(c):
+        c["acc"][50, 1] = 1e30
+
+    path = _recording(tmp_path, spike)
+    with pytest.raises(DataError, match=r"sample 50, axis y: 1e\+30 m/s\^2 is beyond any sensor's range .* a spike") as e:
+        _load(path)
+    assert e.value.field_name == "accel" and str(path) in str(e.value)
+
+
+def test_compiled_streaming_refuses_spikes_huge_steps_and_a_matrix_sample():
+    import numpy as np
+
+    from tcn_ahrs.streaming import CompiledStreaming
+
+    torch.manual_seed(0)
+    m = LearnedAHRS(axes=6, loop="closed", mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]}).eval()
+    m.closed.set_rate(RATE)
+    imu = _imu().numpy()
+    a, b = CompiledStreaming(m), CompiledStreaming(m)
+    for s in (a, b):
+        s.reset(Q0.numpy())
+        s.step_chunk(imu[:50], 1.0 / RATE)
+    bad = imu[50].copy()
+    bad[3] = 1e30
+    with pytest.raises(ValueError, match="beyond any sensor's range"):
+        a.step(bad, 1.0 / RATE)
+    with pytest.raises(ValueError, match=r"dt: expected finite time steps in \(0, 1"):
+        a.step(imu[50], 1e6)
+    with pytest.raises(ValueError, match=r"sample: expected shape \(6,\)"):
+        a.step(np.zeros((2, 3)), 1.0 / RATE)
+    np.testing.assert_array_equal(a.step_chunk(imu[50:], 1.0 / RATE)[0], b.step_chunk(imu[50:], 1.0 / RATE)[0])
+
+
+def test_a_checkpoint_with_nan_weights_is_refused_at_load(tmp_path):
+    from tcn_ahrs.checkpoint import CheckpointError, model_from_checkpoint
+
+    ck = torch.load("checkpoints/broad6.ckpt", map_location="cpu", weights_only=False)
+    key = next(k for k, v in ck["state_dict"].items() if v.is_floating_point() and v.numel() > 1)
+    ck["state_dict"][key] = ck["state_dict"][key].clone()
+    ck["state_dict"][key].view(-1)[0] = math.nan
+    torch.save(ck, tmp_path / "nan.ckpt")
+    with pytest.raises(CheckpointError, match=r"nan.ckpt: weight '.*' holds NaN/inf values"):
+        model_from_checkpoint(tmp_path / "nan.ckpt")

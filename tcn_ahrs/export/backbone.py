@@ -156,8 +156,9 @@ class ResidualStreaming(StreamingAHRS):
 
     def _check_dts(self, d: List[float]) -> None:
         for k in range(len(d)):  # every dt is used (the backbone integrates sample 0)
-            if not (d[k] > 0.0 and math.isfinite(d[k])):
-                raise ValueError("dt: expected finite time steps > 0 s, got " + str(d[k]) + " at index " + str(k))
+            if not (d[k] > 0.0 and d[k] <= self.max_dt):
+                raise ValueError("dt: expected finite time steps in (0, " + self.max_dt_text + "] s, got " + str(d[k])
+                                 + " at index " + str(k))
 
     @torch.jit.export
     def step(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:

@@ -228,8 +228,7 @@ class ClosedLoopStreaming(StreamingAHRS):
         self._check_imu(samples)
         n = samples.size(0)
         d: List[float] = self._dt(dt, n).tolist()
-        if self.t > 0 and not (d[0] > 0.0 and math.isfinite(d[0])):
-            raise ValueError("dt: expected a finite time step > 0 s since the previous sample, got " + str(d[0]))
+        self._check_step(d[0], self.t == 0)
         x = samples.to(torch.float64)
         if self.groups > 0:
             head = torch.addmm(torch.addmm(self.head_bias, self._errors_chunk(samples), self.head_weight.t()),

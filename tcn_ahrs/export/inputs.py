@@ -7,6 +7,8 @@ from typing import List, Union
 import torch
 from torch import Tensor, nn
 
+from ..conventions import INPUT_RANGES, MAX_DT
+
 
 
 class ExportError(ValueError):
@@ -24,20 +26,35 @@ class _Inputs(nn.Module):
             raise ValueError("imu: expected at least one sample")
         self._check_finite(imu, "imu")
 
+    def __init__(self):
+        super().__init__()
+        # per channel: gyro x,y,z, acc x,y,z, mag x,y,z (conventions.INPUT_RANGES)
+        self.register_buffer("input_limits", torch.tensor(
+            [INPUT_RANGES["gyro"]] * 3 + [INPUT_RANGES["accel"]] * 3 + [INPUT_RANGES["mag"]] * 3, dtype=torch.float64))
+        self.max_dt = float(MAX_DT)
+        self.max_dt_text = f"{MAX_DT:g}"
+
     def _check_finite(self, x: Tensor, what: str):
-        """Raise on NaN/inf, naming the first bad entry (one NaN would otherwise spread through
-        the networks' receptive field and the filter state into every later output)."""
-        bad = torch.logical_not(torch.isfinite(x))
+        """Raise on NaN/inf or a value beyond any sensor's range (``input_limits``), naming the
+        first bad entry: one NaN or 1e30 would otherwise spread through the networks' receptive
+        field and the filter state into every later output. One comparison catches both."""
+        bad = torch.logical_not(x.abs() <= self.input_limits[:x.size(-1)])
         if bool(bad.any()):
             where: List[int] = torch.nonzero(bad)[0].tolist()
+            if bool(torch.isfinite(x).all()):
+                raise ValueError(what + ": value beyond any sensor's range at index " + str(where)
+                                 + " (|gyro| <= " + str(self.input_limits[0].item()) + " rad/s, |acc| <= "
+                                 + str(self.input_limits[3].item()) + " m/s^2, |mag| <= "
+                                 + str(self.input_limits[6].item()) + " uT per axis): a spike; drop or "
+                                 "interpolate that sample")
             raise ValueError(what + ": non-finite value at index " + str(where)
                              + " (expected finite readings: drop or interpolate that sample)")
 
     def _check_step(self, dt: float, first: bool):
-        """dt of a step after the first must be finite and > 0 s (the first is not used)."""
-        if not first and not (dt > 0.0 and math.isfinite(dt)):
-            raise ValueError("dt: expected a finite time step > 0 s since the previous sample, got "
-                             + str(dt))
+        """dt of a step after the first must be finite, > 0 s and <= max_dt (the first is not used)."""
+        if not first and not (dt > 0.0 and dt <= self.max_dt):
+            raise ValueError("dt: expected a finite time step in (0, " + self.max_dt_text
+                             + "] s since the previous sample, got " + str(dt))
 
     def _q0(self, q0: Tensor) -> Tensor:
         if q0.numel() != 4:
@@ -59,9 +76,9 @@ class _Inputs(nn.Module):
             d = torch.full([n], float(dt), dtype=dtype)
         # dt[0] is not used (Eq. 3); every later step must be a finite positive time
         later = d[1:]
-        bad = torch.logical_not(torch.isfinite(later) & (later > 0))
+        bad = torch.logical_not((later > 0) & (later <= self.max_dt))
         if bool(bad.any()):
             k = int(torch.nonzero(bad)[0, 0]) + 1
-            raise ValueError("dt: expected finite time steps > 0 s after sample 0, got " + str(float(d[k]))
-                             + " at index " + str(k))
+            raise ValueError("dt: expected finite time steps in (0, " + self.max_dt_text + "] s after sample 0, got "
+                             + str(float(d[k])) + " at index " + str(k))
         return d
