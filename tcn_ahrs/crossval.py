@@ -63,23 +63,25 @@ def inner_split(cfg: DictConfig, folds: List[list], i: int, fcfg: DictConfig) ->
 
 
 def release_knobs(fold_knobs: List[List[dict]]) -> Dict[str, Any]:
-    """The residual knobs for a released model: each point's mean AAE and mean inclination over
-    the folds' inner validation tables (:func:`tcn_ahrs.tuning.select_residual_knobs`), then the
-    same never-worse rule (:func:`tcn_ahrs.tuning.choose_knob_point`). Points missing from a
-    fold's table (an older grid) are left out."""
-    from .tuning import choose_knob_point
+    """The residual knobs for a released model: each point's criterion (worse ratio to the tuned
+    backbone, :func:`tcn_ahrs.tuning.select_residual_knobs`) averaged over the folds' inner
+    validation tables; the lowest wins if it beats the tuned backbone (the tables' reference point,
+    criterion 1) by the selection's margin (:data:`tcn_ahrs.tuning.RESIDUAL_KNOB_MARGIN`)."""
+    from .tuning import RESIDUAL_KNOB_MARGIN
 
-    rows: Dict[tuple, List[Tuple[float, float]]] = {}
+    scores: Dict[tuple, List[float]] = {}
+    reference = None
     for table in fold_knobs:
         for row in table:
             key = tuple(sorted(row["knobs"].items()))
-            rows.setdefault(key, []).append((float(row["aae_deg"]), float(row["inclination_deg"])))
-    n = max(len(v) for v in rows.values())
-    keys = [k for k, v in rows.items() if len(v) == n]
-    mean = np.array([np.mean(rows[k], 0) for k in keys])
-    best, ratio = choose_knob_point([dict(k) for k in keys], mean[:, 0], mean[:, 1])
-    return {"knobs": dict(keys[best]), "score": float(ratio[best].max()), "aae_deg": float(mean[best, 0]),
-            "inclination_deg": float(mean[best, 1]), "folds": n}
+            scores.setdefault(key, []).append(float(row["score"]))
+            if row.get("reference"):
+                reference = key
+    n = max(len(v) for v in scores.values())
+    best = min((k for k, v in scores.items() if len(v) == n), key=lambda k: float(np.mean(scores[k])))
+    if reference is not None and float(np.mean(scores[best])) >= 1.0 - RESIDUAL_KNOB_MARGIN:
+        best = reference
+    return {"knobs": dict(best), "score": float(np.mean(scores[best])), "folds": n}
 
 
 def summarize(folds: List[Dict[str, Any]]) -> Dict[str, Dict[str, Dict[str, float]]]:

@@ -246,8 +246,8 @@ def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path) -> Dic
                                                      "table": table}, indent=1))
     ref = next(r for r in table if r["reference"])
     print(f"inference knobs chosen on the {len(val_seqs)} validation recordings: {chosen} (mean AAE "
-          f"{table[0]['aae_deg']:.2f} / inclination {table[0]['inclination_deg']:.2f} deg; VQF "
-          f"{ref['aae_deg']:.2f} / {ref['inclination_deg']:.2f}); table in {run_dir / 'knobs.json'}")
+          f"{table[0]['aae_deg']:.2f} / inclination {table[0]['inclination_deg']:.2f} deg; the tuned backbone "
+          f"alone {ref['aae_deg']:.2f} / {ref['inclination_deg']:.2f}); table in {run_dir / 'knobs.json'}")
     return chosen
 
 

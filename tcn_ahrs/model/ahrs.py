@@ -85,7 +85,6 @@ class LearnedAHRS(nn.Module):
                                          trust_max=float(res.get("trust_max", 2.0)),
                                          trust_weight=float(res.get("trust_weight", 1.0)),
                                          bias_prior=float(res.get("bias_prior", 1.0)),
-                                         tuned_backbone=float(res.get("tuned_backbone", 1.0)),
                                          backbone=dict(res.get("backbone") or {}))
             return
         self.calibration = Calibration(self.axes, gyro_net, acc_net, mag_net, gyro_input,

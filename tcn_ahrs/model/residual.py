@@ -35,7 +35,7 @@ from .tcn import TCN
 
 FIELD_SCALE = 50.0  # µT: the Earth's field is 22–67 µT
 RESIDUAL_KEYS = {"gyro_scale", "gyro_clip", "acc_trust_scale", "mag_trust_scale", "bias_trust_scale", "trust_max",
-                 "trust_weight", "bias_prior", "tuned_backbone", "backbone"}
+                 "trust_weight", "bias_prior", "backbone"}
 
 
 class ResidualCalibration(nn.Module):
@@ -96,8 +96,7 @@ class BackboneLoop(nn.Module):
 
     def __init__(self, use_mag: bool, acc_trust_scale: float = 1.0, mag_trust_scale: float = 1.0,
                  bias_trust_scale: float = 1.0, trust_max: float = 2.0, trust_weight: float = 1.0,
-                 backbone: Optional[Mapping[str, float]] = None, bias_prior: float = 1.0,
-                 tuned_backbone: float = 1.0):
+                 backbone: Optional[Mapping[str, float]] = None, bias_prior: float = 1.0):
         super().__init__()
         self.trust_max = float(trust_max)
         self.trust_weight = float(trust_weight)
@@ -106,22 +105,10 @@ class BackboneLoop(nn.Module):
         self.mag_trust_scale = float(mag_trust_scale)
         self.bias_trust_scale = float(bias_trust_scale)
         self.bias_prior = float(bias_prior)  # multiplies bias_init: 0 = VQF's zero start
-        # the parameters tuned on the training recordings (train.tune_backbone); tuned_backbone 0
-        # runs VQF's defaults instead (an inference knob: the tuned ones must earn their place)
-        self.tuned_params = bb.BackboneParams.from_mapping(dict(backbone or {}))
-        self.tuned_backbone = float(tuned_backbone)
+        self.params = bb.BackboneParams.from_mapping(dict(backbone or {}))
         # the bias estimate's starting point (rad/s): the training recordings' estimated gyro bias
         # (train.init_gyro_bias), a prior the backbone keeps estimating from (zero: VQF's start)
         self.register_buffer("bias_init", torch.zeros(3, dtype=torch.float64))
-
-    @property
-    def params(self) -> "bb.BackboneParams":
-        """The parameters the backbone runs with: the tuned ones, or VQF's defaults."""
-        return self.tuned_params if self.tuned_backbone > 0.5 else bb.BackboneParams()
-
-    @params.setter
-    def params(self, value: "bb.BackboneParams") -> None:
-        self.tuned_params = value
 
     def trusts(self, cal: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """(B, N) trusts from the calibration's logits (2σ(z): 1 at z = 0) times the scales."""
