@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tcn_ahrs.cli import user_errors  # noqa: E402
 
-KEYS = {"ckpt", "out", "mode", "rate", "net_dtype"}
+KEYS = {"ckpt", "out", "mode", "rate", "net_dtype", "overwrite"}
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="export")
@@ -35,7 +35,7 @@ def main(cfg: DictConfig) -> None:
         raise ValueError("export: pass ckpt=PATH (a checkpoint written by scripts/train.py) and out=FILE.pt")
     written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
                                 rate_hz=None if cfg.rate is None else float(cfg.rate),
-                                net_dtype=str(cfg.net_dtype))
+                                net_dtype=str(cfg.net_dtype), overwrite=bool(cfg.get("overwrite", False)))
     for mode, path in written.items():
         md = read_metadata(path)
         print(f"{mode}: {path}  ({md['variant']}, {md['axes']}-axis, preintegration {md['preintegration']}, "

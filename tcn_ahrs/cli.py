@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import functools
 import os
+import shutil
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional
+from typing import Iterator, List, Optional
 
 EXIT_USER_ERROR = 2
 
@@ -42,3 +44,55 @@ def output_dir(explicit: Optional[str], fallback: Path) -> Path:
         return Path(HydraConfig.get().runtime.output_dir)
     except Exception:  # noqa: BLE001 - no Hydra job
         return Path(fallback) / time.strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def _earlier_entries(folder: Path) -> List[str]:
+    """What a folder holds besides Hydra's own files of this job (``.hydra/``, ``*.log``)."""
+    return sorted(p.name for p in folder.iterdir() if p.name != ".hydra" and p.suffix != ".log")
+
+
+def refuse_earlier_output(out, overwrite: bool = False, what: str = "output") -> Path:
+    """``out`` as a Path; ValueError if it is a file, or a folder holding an earlier run's files
+    and not ``overwrite`` (called before the work starts, and again by :func:`staged_output`)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{what}: out={out} exists and is not a folder")
+    if out.is_dir() and not overwrite:
+        earlier = _earlier_entries(out)
+        if earlier:
+            raise ValueError(f"{what}: out={out} already holds an earlier run's files ({', '.join(earlier[:4])}"
+                             f"{', ...' if len(earlier) > 4 else ''}): choose a new out= or pass overwrite=true "
+                             "(replaces them when this run completes)")
+    return out
+
+
+@contextmanager
+def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterator[Path]:
+    """A run's output folder, written as a whole or not at all: the body writes into a hidden
+    sibling ``.<name>.partial`` (a killed run leaves only that, removed by the next run), which
+    replaces ``out`` when the body returns. An ``out`` that already holds an earlier run's files
+    is refused unless ``overwrite`` (then they are replaced, none kept beside the new ones).
+    Hydra's files of the current job (``.hydra/``, its log) move into the new folder."""
+    out = refuse_earlier_output(out, overwrite, what)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = out.parent / f".{out.name}.partial"
+    if stage.exists():
+        shutil.rmtree(stage)  # a killed earlier run's leftovers
+    stage.mkdir()
+    try:
+        yield stage
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    if out.is_dir():
+        old = out.parent / f".{out.name}.old"
+        if old.exists():
+            shutil.rmtree(old)
+        out.rename(old)
+        stage.rename(out)
+        for p in old.iterdir():
+            if p.name == ".hydra" or p.suffix == ".log":
+                p.rename(out / p.name)
+        shutil.rmtree(old)
+    else:
+        stage.rename(out)

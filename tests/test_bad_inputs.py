@@ -405,3 +405,53 @@ def test_a_checkpoint_with_nan_weights_is_refused_at_load(tmp_path):
     torch.save(ck, tmp_path / "nan.ckpt")
     with pytest.raises(CheckpointError, match=r"nan.ckpt: weight '.*' holds NaN/inf values"):
         model_from_checkpoint(tmp_path / "nan.ckpt")
+
+
+def test_staged_output_is_all_or_nothing_and_never_mixes_runs(tmp_path):
+    from tcn_ahrs.cli import staged_output
+
+    out = tmp_path / "eval"
+    with staged_output(out) as stage:
+        (stage / "results.json").write_text("1")
+        (stage / "old_recording.txt").write_text("x")
+        assert not out.exists()  # nothing visible until the run completes
+    assert (out / "results.json").read_text() == "1"
+    with pytest.raises(ValueError, match=r"already holds an earlier run's files .* overwrite=true"):
+        with staged_output(out):
+            pass
+    with pytest.raises(RuntimeError, match="killed"):  # a failing run leaves the earlier one as it was
+        with staged_output(out, overwrite=True) as stage:
+            (stage / "results.json").write_text("half")
+            raise RuntimeError("killed")
+    assert (out / "results.json").read_text() == "1" and not (tmp_path / ".eval.partial").exists()
+    (out / ".hydra").mkdir()
+    (tmp_path / ".eval.partial").mkdir()  # what a SIGKILL leaves: removed by the next run
+    with staged_output(out, overwrite=True) as stage:
+        (stage / "results.json").write_text("2")
+    assert sorted(p.name for p in out.iterdir()) == [".hydra", "results.json"]  # no earlier recording beside it
+    hydra_dir = tmp_path / "hydra_run"
+    (hydra_dir / ".hydra").mkdir(parents=True)
+    (hydra_dir / "evaluate.log").write_text("log")
+    with staged_output(hydra_dir) as stage:  # Hydra's own files of this job are not an earlier run
+        (stage / "results.json").write_text("3")
+    assert sorted(p.name for p in hydra_dir.iterdir()) == [".hydra", "evaluate.log", "results.json"]
+
+
+def test_export_writes_both_files_or_neither_and_refuses_to_overwrite(tmp_path, monkeypatch):
+    import tcn_ahrs.export as ex
+
+    out = tmp_path / "m.pt"
+    written = ex.export_checkpoint("checkpoints/closed_loop/broad6.ckpt", out)
+    assert set(written) == {"batch", "streaming"} and out.exists() and ex.streaming_path(out).exists()
+    with pytest.raises(ex.ExportError, match="already exist.*overwrite=true"):
+        ex.export_checkpoint("checkpoints/closed_loop/broad6.ckpt", out)
+    before = (out.read_bytes(), ex.streaming_path(out).read_bytes())
+
+    def killed(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ex, "export_streaming", killed)  # dies after the batch file is written
+    with pytest.raises(KeyboardInterrupt):
+        ex.export_checkpoint("checkpoints/broad6.ckpt", out, overwrite=True)
+    assert (out.read_bytes(), ex.streaming_path(out).read_bytes()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pt", "m_streaming.pt"]

@@ -8,12 +8,12 @@ import torch
 from omegaconf import DictConfig
 
 from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
-from ..cli import output_dir
+from ..cli import output_dir, refuse_earlier_output, staged_output
 from ..validate import check_keys
 from .reports import print_table
 from .runner import evaluate
 
-EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor", "other_rate"}
+EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor", "other_rate", "overwrite"}
 
 
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
@@ -27,6 +27,10 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         torch.set_num_threads(int(cfg.threads))
     if not cfg.get("ckpt"):
         raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
+    # run_dir= (a training run): its eval/ subfolder, never the run's own files
+    explicit = cfg.get("out") or (str(Path(str(cfg.run_dir)) / "eval") if cfg.get("run_dir") else None)
+    out = str(output_dir(explicit, Path("runs") / "evaluate"))
+    refuse_earlier_output(out, bool(cfg.get("overwrite", False)), "evaluate")  # before any work
     ck = load_checkpoint(cfg.ckpt)
     axes = int(cfg.data.get("axes", 9))
     if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
@@ -39,16 +43,16 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     if not seqs:
         raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
                          f"'{cfg.data.split}' (root {cfg.data.get('root')})")
-    out = str(output_dir(cfg.get("out") or cfg.get("run_dir"), Path("runs") / "evaluate"))
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
                                reanchor=cfg.get("reanchor"), other_rate=str(cfg.get("other_rate", "backbone")))
     from ..estimators.registry import baseline_estimators, load_plugins
 
     load_plugins(cfg.get("plugins"))
     estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
-    res = evaluate(estimators, seqs, out_dir=out, axes=axes, dataset=str(cfg.data.name),
-                   plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
-                   align=bool(cfg.get("align", True)))
+    with staged_output(out, bool(cfg.get("overwrite", False)), "evaluate") as stage:
+        res = evaluate(estimators, seqs, out_dir=stage, axes=axes, dataset=str(cfg.data.name),
+                       plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
+                       align=bool(cfg.get("align", True)))
     print(f"results in {out}")
     print_table(res)
     return res

@@ -52,6 +52,7 @@ layer and computes GELU as ``u (1 + erf(u))`` on sqrt(1/2)-scaled pre-activation
 """
 import hashlib
 import json
+import os
 import warnings
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Union
@@ -172,8 +173,12 @@ def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    torch.jit.save(scripted, str(tmp), _extra_files={"metadata.json": scripted.metadata()})
-    tmp.replace(path)
+    try:
+        torch.jit.save(scripted, str(tmp), _extra_files={"metadata.json": scripted.metadata()})
+        tmp.replace(path)
+    except (RuntimeError, OSError) as e:  # a read-only folder, a full disk
+        tmp.unlink(missing_ok=True)
+        raise ExportError(f"export: cannot write {path}: {e}") from None
     return scripted
 
 
@@ -197,9 +202,13 @@ def streaming_path(out) -> Path:
 
 
 def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional[float] = None,
-                      net_dtype: Union[str, torch.dtype] = "float32") -> Dict[str, str]:
+                      net_dtype: Union[str, torch.dtype] = "float32", overwrite: bool = False) -> Dict[str, str]:
     """Load a checkpoint (``weights_only=True``, :func:`tcn_ahrs.checkpoint.model_from_checkpoint`)
     and export it. Returns {"batch": path, "streaming": path} (the ones written).
+
+    The files are written as a set: each to a hidden temporary name first, all renamed into place
+    at the end (a killed export leaves none of them; never a batch file of one checkpoint beside a
+    streaming file of another). Existing files are refused unless ``overwrite``.
 
     Raises :class:`tcn_ahrs.checkpoint.CheckpointError` for a missing, corrupt or foreign file."""
     from ..checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint
@@ -212,8 +221,20 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
         net_dtype = getattr(torch, net_dtype)
     if net_dtype == torch.bfloat16 and mode != "batch":
         raise ValueError(f"net_dtype bfloat16 is for mode=batch only (got mode={mode})")
+    ck_meta = checkpoint_meta(load_checkpoint(ckpt_path), ckpt_path)  # a missing checkpoint is named first
+    targets: Dict[str, Path] = {}
+    if mode in ("batch", "both"):
+        targets["batch"] = Path(out_path)
+    if mode in ("streaming", "both"):
+        targets["streaming"] = Path(out_path) if mode == "streaming" else streaming_path(out_path)
+    existing = [str(t) for t in targets.values() if t.exists()]
+    if existing and not overwrite:
+        raise ExportError(f"export: {', '.join(existing)} already exist(s): choose another out= or pass overwrite=true")
+    folder = Path(out_path).parent
+    folder.mkdir(parents=True, exist_ok=True)
+    if not os.access(folder, os.W_OK):
+        raise ExportError(f"export: cannot write into {folder} (read-only?): choose another out=")
     model = model_from_checkpoint(ckpt_path)
-    ck_meta = checkpoint_meta(load_checkpoint(ckpt_path), ckpt_path)
     rate = rate_hz if rate_hz is not None else ck_meta.get("rate_hz", (ck_meta.get("layout") or {}).get("rate_hz"))
     if rate is None:
         warnings.warn(f"{ckpt_path}: the checkpoint does not record the rate the model was trained at; "
@@ -221,15 +242,17 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     meta = {"rate_hz": None if rate is None else float(rate), "checkpoint": Path(ckpt_path).name,
             "checkpoint_sha256": file_sha256(ckpt_path), "model_config": ck_meta.get("model"),
             "data": ck_meta.get("data")}
-    written: Dict[str, str] = {}
-    if mode in ("batch", "both"):
-        export_batch(model, out_path, meta, net_dtype)
-        written["batch"] = str(out_path)
-    if mode in ("streaming", "both"):
-        sp = Path(out_path) if mode == "streaming" else streaming_path(out_path)
-        export_streaming(model, sp, meta, net_dtype)
-        written["streaming"] = str(sp)
-    return written
+    staged = {k: t.with_name(f".{t.name}.partial") for k, t in targets.items()}
+    try:
+        for kind, tmp in staged.items():
+            (export_batch if kind == "batch" else export_streaming)(model, tmp, meta, net_dtype)
+    except BaseException:
+        for tmp in staged.values():
+            tmp.unlink(missing_ok=True)
+        raise
+    for kind, tmp in staged.items():
+        os.replace(tmp, targets[kind])
+    return {k: str(t) for k, t in targets.items()}
 
 
 def read_metadata(path) -> Dict[str, Any]:
