@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import sys
+import os
 import time
 import warnings
 from pathlib import Path
@@ -309,6 +310,94 @@ def find_resume_checkpoint(run_dir: Path) -> Path:
     return cands[-1]
 
 
+# keys a resumed run may set without changing the experiment
+RESUME_KEYS = ("resume", "ckpt_path", "run_dir", "threads")
+
+
+def command_line_overrides() -> Optional[List[str]]:
+    """The ``key=value`` overrides of the running Hydra job (None outside one)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return list(HydraConfig.get().overrides.task)
+    except Exception:  # noqa: BLE001 - no Hydra job (library call, compose API)
+        return None
+
+
+def resume_config(cfg: DictConfig, run_dir: Path, overrides: Optional[List[str]]) -> DictConfig:
+    """The configuration a resumed run continues with: the run's own ``config_resolved.yaml``
+    (its overrides, schedule, time cap), with only what this command sets on top — ``overrides``
+    (``key=value`` strings; None: every key of ``cfg`` counts as set, as for a library call).
+    Each setting that changes the saved run is named; ``resume``/``run_dir``/``ckpt_path``/
+    ``threads`` are this command's own."""
+    saved_path = run_dir / "config_resolved.yaml"
+    if not saved_path.is_file():
+        print(f"WARNING: resume: {saved_path} is missing: the run continues with this command's configuration")
+        return cfg
+    saved = OmegaConf.load(saved_path)
+    if overrides is None:
+        keys = [k for k in _leaf_keys(cfg) if k.split(".")[0] not in RESUME_KEYS]
+    else:
+        keys = [o.split("=", 1)[0].lstrip("+~") for o in overrides if "=" in o]
+        keys = [k for k in keys if k.split(".")[0] not in RESUME_KEYS and k.split(".")[0] != "hydra"]
+    out = OmegaConf.create(OmegaConf.to_container(saved, resolve=True))
+    changed = []
+    for k in keys:
+        new, old = OmegaConf.select(cfg, k), OmegaConf.select(saved, k)
+        if isinstance(new, DictConfig) or isinstance(old, DictConfig):  # a group (data=..., model=...)
+            new, old = _plain(new), _plain(old)
+        if new != old:
+            changed.append(f"{k}: {old!r} -> {new!r}")
+        OmegaConf.update(out, k, new if not isinstance(new, (dict, list)) else OmegaConf.create(new), merge=False,
+                         force_add=True)
+    for k in RESUME_KEYS:
+        if k in cfg:
+            OmegaConf.update(out, k, cfg.get(k), force_add=True)
+    if changed:
+        print("resume: this command changes the saved run's configuration: " + "; ".join(changed)
+              + f" (everything else as saved in {saved_path})")
+    return out
+
+
+def _leaf_keys(cfg, prefix: str = "") -> List[str]:
+    keys = []
+    for k, v in cfg.items():
+        name = f"{prefix}{k}"
+        if isinstance(v, DictConfig):
+            keys += _leaf_keys(v, name + ".")
+        else:
+            keys.append(name)
+    return keys
+
+
+def trim_metrics(metrics_csv: Path, last_epoch: int, global_step: int) -> int:
+    """Drop the rows of epochs after ``last_epoch`` (the ones a kill interrupted, logged again
+    by the resumed run) from a Lightning ``metrics.csv``: rows of a later epoch, and rows without
+    an epoch (the learning-rate monitor's) at or after ``global_step``, the checkpoint's step.
+    Returns how many went."""
+    import csv
+
+    if not metrics_csv.is_file():
+        return 0
+    with open(metrics_csv, newline="") as fh:
+        reader = csv.DictReader(fh)
+        fields, rows = reader.fieldnames, list(reader)
+    def later(r) -> bool:
+        if r.get("epoch") not in (None, ""):
+            return int(float(r["epoch"])) > last_epoch
+        return r.get("step") not in (None, "") and int(float(r["step"])) >= global_step
+
+    keep = [r for r in rows if not later(r)]
+    if len(keep) != len(rows):
+        tmp = metrics_csv.with_name(f".{metrics_csv.name}.tmp")
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=fields)
+            w.writeheader()
+            w.writerows(keep)
+        os.replace(tmp, metrics_csv)
+    return len(rows) - len(keep)
+
+
 def _appending_csv_logger(run_dir: Path):
     """Lightning's CSVLogger, except that an existing ``logs/metrics.csv`` is continued, not
     deleted: a resumed run keeps the history of the epochs before the kill."""
@@ -334,6 +423,32 @@ def _appending_csv_logger(run_dir: Path):
     return _Logger(str(run_dir), name="logs", version="")
 
 
+class RandomState(pl.Callback):
+    """Keeps the random generators' states (torch, numpy, Python) in every checkpoint and
+    restores them on resume, so that a resumed run draws the same shuffles, noise and dropout
+    as the run that was not interrupted (Lightning restores weights, optimiser and loops only)."""
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint) -> None:
+        import random
+
+        name, keys, pos, has_gauss, cached = np.random.get_state()
+        # plain types and tensors only: checkpoints are read with torch.load(weights_only=True)
+        checkpoint["rng_states"] = {"torch": torch.get_rng_state(), "python": random.getstate(),
+                                    "numpy": [name, torch.from_numpy(keys.astype(np.int64)), int(pos), int(has_gauss),
+                                              float(cached)]}
+
+    def on_load_checkpoint(self, trainer, pl_module, checkpoint) -> None:
+        import random
+
+        st = checkpoint.get("rng_states")
+        if st is None:
+            return
+        torch.set_rng_state(st["torch"])
+        random.setstate(st["python"])
+        name, keys, pos, has_gauss, cached = st["numpy"]
+        np.random.set_state((name, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+
+
 def build_trainer(cfg, run_dir: Path, monitor: str, callbacks_extra=()) -> pl.Trainer:
     from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint
 
@@ -354,7 +469,7 @@ def build_trainer(cfg, run_dir: Path, monitor: str, callbacks_extra=()) -> pl.Tr
         pass
     tr = _plain(cfg.trainer)
     return pl.Trainer(max_epochs=int(cfg.train.epochs), max_time=cfg.train.get("max_time"),
-                      callbacks=[ckpt_cb, last_cb, LearningRateMonitor("epoch"), *callbacks_extra],
+                      callbacks=[ckpt_cb, last_cb, LearningRateMonitor("epoch"), RandomState(), *callbacks_extra],
                       logger=loggers, plugins=[AtomicCheckpointIO()],
                       default_root_dir=str(run_dir),
                       limit_train_batches=cfg.train.get("limit_train_batches") or 1.0,
@@ -366,10 +481,16 @@ def _run_dir(cfg) -> Path:
 
 
 # ================================================================== entry points
-def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) -> Dict[str, Any]:
+def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
+               overrides: Optional[List[str]] = None, callbacks=()) -> Dict[str, Any]:
     """Train, then evaluate on held-out data. Returns {"run_dir", "best", "last", "results"}.
 
-    ``train_seqs``/``val_seqs``/``test_seqs`` replace the data config's splits (tests)."""
+    ``train_seqs``/``val_seqs``/``test_seqs`` replace the data config's splits (tests).
+    ``resume=true`` continues the run in ``run_dir`` with its saved configuration
+    (:func:`resume_config`; ``overrides``: this command's ``key=value`` settings, by default the
+    Hydra job's). ``callbacks``: more Lightning callbacks (tests)."""
+    if cfg.get("resume") and not cfg.get("ckpt_path"):
+        cfg = resume_config(cfg, _run_dir(cfg), overrides if overrides is not None else command_line_overrides())
     check_keys(cfg.train, TRAIN_KEYS, "train")
     check_train_values(cfg.train)
     if cfg.get("threads"):
@@ -442,10 +563,18 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None) 
         ck = load_checkpoint(ckpt_path)
         check_layout(ck, axes, ckpt_path)
         print(f"resuming from {ckpt_path} (epoch {ck.get('epoch')})")
+        if cfg.get("resume") and ck.get("epoch") is not None:
+            # the interrupted epoch's rows are logged again by the resumed run: drop them
+            dropped = trim_metrics(run_dir / "logs" / "metrics.csv", int(ck["epoch"]), int(ck.get("global_step") or 0))
+            if dropped:
+                print(f"resume: dropped {dropped} metrics rows of the interrupted epoch {int(ck['epoch']) + 1}")
 
-    trainer = build_trainer(cfg, run_dir, monitor)
+    trainer = build_trainer(cfg, run_dir, monitor, callbacks)
     if trainer.is_global_zero:
-        (run_dir / "config_resolved.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+        # the run's configuration as started; a resumed run keeps it (and notes its own)
+        name = "config_resumed.yaml" if (cfg.get("resume") and (run_dir / "config_resolved.yaml").is_file()) \
+            else "config_resolved.yaml"
+        (run_dir / name).write_text(OmegaConf.to_yaml(cfg, resolve=True))
         n = module.model.num_parameters()
         print(f"model {model_cfg.get('variant')} ({axes}-axis): {n:,} trainable parameters, "
               f"receptive field {module.model.receptive_field} samples; "

@@ -79,6 +79,56 @@ def test_tiny_run_writes_checkpoints_config_and_resumes(tmp_path, seqs):
         assert out.signals[k].shape == (n, 3)
 
 
+def test_resume_after_a_kill_is_the_uninterrupted_run(tmp_path, seqs):
+    """A run killed in its second epoch and resumed with only resume=true run_dir=... (the
+    README's command) restores its own overrides (train.epochs=3, not the default), continues the
+    same schedule and ends with the uninterrupted run's weights and final metrics; the killed
+    epoch's rows are not in metrics.csv twice; config_resolved.yaml stays the run's own."""
+    import csv
+
+    import pytorch_lightning as pl
+
+    class Kill(pl.Callback):
+        def on_train_batch_end(self, trainer, *args):
+            if trainer.current_epoch == 1:  # in the middle of the second epoch
+                raise RuntimeError("killed")
+
+    def rows(run):
+        with open(run / "logs" / "metrics.csv", newline="") as fh:
+            return [r for r in csv.DictReader(fh)]
+
+    own = ["train.epochs=3", "train.lr=0.002", "trainer.log_every_n_steps=1"]
+    _train(tmp_path / "whole", seqs, own)
+    run = tmp_path / "killed"
+    with pytest.raises(RuntimeError, match="killed"):
+        train_main(_cfg(TINY + [f"run_dir={run}"] + own), *seqs, callbacks=[Kill()])
+    saved = (run / "config_resolved.yaml").read_text()
+    train_main(_cfg(TINY + [f"run_dir={run}", "resume=true"]), *seqs, overrides=["resume=true", f"run_dir={run}"])
+    assert (run / "config_resolved.yaml").read_text() == saved and "epochs: 3" in saved
+    a = load_checkpoint(tmp_path / "whole" / "checkpoints" / "last.ckpt")
+    b = load_checkpoint(run / "checkpoints" / "last.ckpt")
+    assert a["epoch"] == b["epoch"] == 2
+    for k in a["state_dict"]:  # (conv biases before BatchNorm get ~0 gradients: float noise, Adam-scaled)
+        torch.testing.assert_close(b["state_dict"][k], a["state_dict"][k], rtol=1e-3, atol=1e-4)
+    ra, rb = rows(tmp_path / "whole"), rows(run)
+    key = lambda r: (r.get("epoch"), r.get("step"), tuple(sorted(k for k, v in r.items() if v)))  # noqa: E731
+    assert sorted(map(key, rb)) == sorted(map(key, ra))  # no row twice, none missing
+    final = [{k: float(v) for k, v in r.items() if v and k.startswith("val/")} for r in (ra, rb)
+             for r in [[x for x in r if x.get("val/loss")][-1]]]
+    assert final[0].keys() == final[1].keys() and final[0]
+    for k in final[0]:
+        assert final[1][k] == pytest.approx(final[0][k], rel=1e-4), k
+
+
+def test_resume_names_a_changed_setting(tmp_path, seqs, capsys):
+    run = tmp_path / "run"
+    _train(run, seqs, ["train.epochs=1"])
+    train_main(_cfg(TINY + [f"run_dir={run}", "resume=true", "train.epochs=2"]), *seqs,
+               overrides=["resume=true", "train.epochs=2"])
+    assert "resume: this command changes the saved run's configuration: train.epochs: 1 -> 2" in capsys.readouterr().out
+    assert load_checkpoint(run / "checkpoints" / "last.ckpt")["epoch"] == 1
+
+
 def test_training_is_deterministic(tmp_path, seqs):
     _train(tmp_path / "a", seqs, ["train.epochs=1"])
     _train(tmp_path / "b", seqs, ["train.epochs=1"])
