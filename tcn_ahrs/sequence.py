@@ -200,6 +200,8 @@ class ImuSequence:
                                    f"(median angle {agree['angle_deg']:.0f} deg) but agrees when the quaternions "
                                    f"are read as x,y,z,w ({alt:.0f} deg): the values are in x,y,z,w order (HDF5: declare "
                                    "quat_order: xyzw; CSV: name the columns by what they hold)")
+        self._check_gyro_axes(agree)  # the specific per-axis causes before the general disagreement
+        if agree.get("angle_deg") is not None and agree["angle_deg"] > 45.0:
             self._fail("quat", f"the gyro disagrees with the rate differentiated from the ground truth (median "
                                f"angle {agree['angle_deg']:.0f} deg over {agree['moving']} moving samples; "
                                "expected < 45): the ground truth's body frame is rotated against the IMU's, "
@@ -210,7 +212,17 @@ class ImuSequence:
                     else ": check the gyro's and the timestamps' units")
             self._fail("gyro", f"expected rad/s; the ground truth turns {scale:.3g} times as fast as the gyro "
                                f"says (median over {agree['moving']} moving samples){hint}")
+        fit = agree.get("accel_fit") or {}
+        for k in fit.get("dead_axes") or []:
+            self._fail("accel", f"axis {'xyz'[k]} reads (almost) a constant while gravity moves along it: a dead "
+                                "or disconnected accelerometer axis; this recording cannot be used")
         up = agree["up"]
+        if not (up[2] < 0.5 and agree.get("up_concentration", 1.0) >= 0.9):
+            self._check_accel_axes(fit)  # (a frame turned as a whole is the up test's, below)
+        if up[2] < 0.5 and agree.get("up_concentration", 1.0) < 0.9:
+            self._fail("accel", "the specific force does not keep one direction in the ground-truth frame "
+                                f"(concentration {agree['up_concentration']:.2f}, expected ~1): the accelerometer's "
+                                "axes disagree with the gyro's and the ground truth's; check its columns")
         if up[2] < 0.5:
             if up[2] < -0.5:
                 why = ("the accelerometer reads gravity (down) instead of specific force (up)? declare "
@@ -219,6 +231,68 @@ class ImuSequence:
                 why = "the ground truth's frame is not z-up: declare its nav_frame"
             self._fail("accel", "expected specific force pointing up (+z, ENU) in the ground-truth frame; its "
                                 f"mean direction there is [{up[0]:.2f}, {up[1]:.2f}, {up[2]:.2f}]: {why}")
+
+    def _check_accel_axes(self, fit: Optional[dict]) -> None:
+        """The accelerometer per axis against the gravity the ground truth predicts in the body
+        frame (where the recording tilts enough): a dead axis, a left-handed frame, swapped or
+        negated axes — causes the up test below would misreport as a ground-truth frame."""
+        if not fit or fit.get("gyro_to_gt") is None:
+            return
+        excited = set(fit["excited_axes"])
+        if len(excited) < 2 or fit.get("explained", 0.0) < 0.5:
+            return
+        a, perm = fit["gyro_to_gt"], fit["wiring"]
+        if fit["det"] < 0 and float(np.linalg.det(perm)) < 0:
+            self._fail("accel", "the accelerometer's axes form a left-handed frame against the ground truth's body "
+                                f"frame (fitted map {np.round(a, 2).tolist()}): one axis has the wrong sign or two are "
+                                "swapped; negate or swap the column")
+        wrong = [i for i in sorted(excited) if perm[i, i] != 1.0]
+        if wrong:
+            self._fail("accel", f"axes wired differently from the gyro's and the ground truth's body frame (fitted "
+                                f"map {np.round(a, 2).tolist()}): fix the accelerometer's columns")
+
+    def _check_gyro_axes(self, agree: dict) -> None:
+        """Per-axis wiring against the ground-truth body rate (:func:`_axis_fit`): a dead or
+        saturated axis, a flipped sign or swapped axes, a left-handed frame, a rotated body frame,
+        and a gyro far slower or faster than the ground truth where only the latter turns (a
+        rad/s gyro declared deg/s on a slow clip)."""
+        xyz = "xyz"
+        gs = agree.get("gt_scale")
+        if gs is not None and (30.0 < gs < 100.0 or 0.005 < gs < 0.05):  # a deg/s <-> rad/s mix-up first
+            hint = ("is the gyro already in rad/s? remove gyr_unit: deg/s" if gs > 1.0
+                    else "is it in deg/s? declare gyr_unit: deg/s")
+            self._fail("gyro", f"expected rad/s; where the ground truth turns it turns {gs:.3g} times as fast as "
+                               f"the gyro says (median over {agree['gt_moving']} samples): {hint}")
+        for k in agree.get("dead_axes") or []:
+            self._fail("gyro", f"axis {xyz[k]} reads (almost) a constant while the ground truth turns about it: "
+                               "a dead or disconnected gyro axis; this recording cannot be used")
+        for k, level in (agree.get("saturated") or {}).items():
+            self._fail("gyro", f"axis {xyz[k]} sticks at ±{level:.3g} rad/s while the ground truth turns faster: "
+                               "the gyro saturates (its range setting is too small); drop those parts or record "
+                               "with a larger range")
+        if gs is not None and not 0.5 < gs < 2.0 and (agree.get("scale") is None or agree.get("moving", 0) < 30):
+            self._fail("gyro", f"expected rad/s; where the ground truth turns it turns {gs:.3g} times as fast as "
+                               f"the gyro says (median over {agree['gt_moving']} samples): check the gyro's and "
+                               "the timestamps' units")
+        a, perm, excited = agree.get("gyro_to_gt"), agree.get("wiring"), set(agree.get("excited_axes") or [])
+        if a is None or len(excited) < 2 or agree.get("explained", 0.0) < 0.5:
+            return
+        if agree["det"] < 0:
+            self._fail("gyro", "the gyro's axes form a left-handed frame against the ground truth's body frame "
+                               f"(fitted map {np.round(a, 2).tolist()}, determinant < 0): one axis has the wrong "
+                               "sign or two axes are swapped; no rotation fixes that: negate or swap the column")
+        wrong = [i for i in sorted(excited) if perm[i, i] != 1.0]
+        if wrong:
+            reads = "; ".join(f"the body's {xyz[i]} rate is read by gyro {'-' if perm[i].sum() < 0 else '+'}"
+                              f"{xyz[int(np.argmax(np.abs(perm[i])))]}" for i in wrong)
+            self._fail("gyro", f"axes wired differently from the ground truth's body frame: {reads} (fitted map "
+                               f"{np.round(a, 2).tolist()}): fix the columns, or, if the IMU is mounted rotated, "
+                               f"declare gt_body_from_imu: {perm.astype(int).tolist()}")
+        mis = agree.get("misalignment_deg")
+        if mis is not None and len(excited) == 3 and mis > MAX_MISALIGNMENT_DEG:
+            self._fail("quat", f"the ground truth's body frame is rotated {mis:.1f} deg against the IMU's (fitted "
+                               f"from the rates about all three axes; expected < {MAX_MISALIGNMENT_DEG:g}): declare "
+                               "gt_body_from_imu (the IMU's frame in the ground truth's body frame)")
 
     def _array(self, name: str, a, shape) -> np.ndarray:
         try:
@@ -274,6 +348,8 @@ class ImuSequence:
                                   "is it in nT? convert with conventions.nt_to_ut")
 
 
+EXCITED_RATE = 10.0 * np.pi / 180.0  # rad/s, spread of the ground-truth rate about an axis
+MAX_MISALIGNMENT_DEG = 5.0  # real recordings fit 0.1-1.9 deg where all three axes turn (EuRoC, TUM VI)
 MAX_GAP_STEPS = 20.0  # a time step longer than this many median steps ...
 MAX_GAP_S = 0.2      # ... and than this many seconds is a gap in the data, not a late sample
 
@@ -299,8 +375,21 @@ def ground_truth_agreement(seq: "ImuSequence", lag_s: float = 0.05, min_rate: fl
     ok = valid[lag:] & valid[:-lag]
     q = torch.as_tensor(np.where(valid[:, None], seq.quat, 0.0), dtype=torch.float64)
     a = torch.as_tensor(seq.accel[valid], dtype=torch.float64)
-    f = so3.quat_rotate(q[torch.as_tensor(valid)], a / a.norm(dim=1, keepdim=True).clamp_min(1e-9))
-    out = {"up": f.mean(0).numpy(), "angle_deg": None, "angle_deg_xyzw": None, "scale": None, "moving": 0}
+    qv = q[torch.as_tensor(valid)]
+    # the specific force averaged in the ground-truth frame is gravity plus the mean linear
+    # acceleration, Δv / T (a few cm/s² over a recording, even in fast translation): its direction
+    # is up; averaging unit directions instead is pulled down by fast motion
+    f_nav = so3.quat_rotate(qv, a)
+    f = f_nav.mean(0)
+    unit = f_nav / f_nav.norm(dim=1, keepdim=True).clamp_min(1e-9)
+    out = {"up": (f / f.norm().clamp_min(1e-9)).numpy(), "angle_deg": None, "angle_deg_xyzw": None, "scale": None,
+           "moving": 0, "accel_fit": None,
+           # 1: the specific force keeps one direction in the ground-truth frame (a frame turned
+           # as a whole); low: it scatters with the attitude (the accelerometer's own axes)
+           "up_concentration": float(unit.mean(0).norm())}
+    # the accelerometer per axis against the gravity the ground truth predicts in the body frame
+    expected = so3.quat_rotate(so3.quat_conj(qv), torch.tensor([0.0, 0.0, GRAVITY], dtype=torch.float64).expand_as(a))
+    out["accel_fit"] = _axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, saturation=False)
     if ok.sum() < 30:
         return out
     okt = torch.as_tensor(ok)
@@ -313,6 +402,7 @@ def ground_truth_agreement(seq: "ImuSequence", lag_s: float = 0.05, min_rate: fl
         return so3.quat_log(so3.quat_mul(so3.quat_conj(qq[:-lag][okt]), qq[lag:][okt])) / span
 
     w_gt = gt_rate(q)
+    out.update(_axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE))  # needs only the ground truth to turn
     moving = (w_gyro.norm(dim=1) > min_rate) & (w_gt.norm(dim=1) > min_rate)
     out["moving"] = int(moving.sum())
     if out["moving"] < 30:
@@ -325,6 +415,59 @@ def ground_truth_agreement(seq: "ImuSequence", lag_s: float = 0.05, min_rate: fl
     out["angle_deg"] = angle(w_gt)
     out["angle_deg_xyzw"] = angle(gt_rate(q[:, [3, 0, 1, 2]]))
     out["scale"] = float((w_gt[moving].norm(dim=1) / w_gyro[moving].norm(dim=1)).median())
+    return out
+
+
+def _axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: float,
+              saturation: bool = True) -> dict:
+    """Per-axis agreement of the gyro with the ground-truth body rate, on the samples where the
+    ground truth turns (w_gt faster than ``min_rate``; the gyro may read anything there):
+
+    * ``gyro_to_gt`` (3, 3): least-squares map ``w_gt ≈ A w_gyro`` (identity when wired right);
+      ``wiring``: the signed permutation nearest to it (which gyro axis reads which body axis);
+      ``det``: its determinant's sign (−1: one axis flipped or two swapped, a left-handed frame);
+      ``misalignment_deg``: the angle of the rotation nearest to ``A`` (a rotated body frame);
+    * ``dead_axes``: gyro axes that read (almost) nothing while the ground truth turns about them;
+    * ``saturated``: {axis: level} where the gyro sticks at its extreme while the ground truth
+      turns faster."""
+    moving = np.linalg.norm(w_gt, axis=1) > min_rate
+    out = {"gyro_to_gt": None, "wiring": None, "det": None, "misalignment_deg": None, "dead_axes": [],
+           "saturated": {}, "gt_moving": int(moving.sum()), "gt_scale": None, "excited_axes": []}
+    if moving.sum() < 30:
+        return out
+    g, r = w_gyro[moving], w_gt[moving]
+    gt_spread = r.std(0)
+    out["dead_axes"] = [k for k in range(3) if g[:, k].std() < 0.02 * max(gt_spread[k], min_rate)
+                        and gt_spread[k] > max(min_rate / 2, 0.1 * excited)]
+    for k in range(3 if saturation else 0):
+        top = np.abs(g[:, k]).max()
+        # saturated: the extreme value itself repeats (a clipped ADC), and the ground truth turns
+        # faster about that axis there (a smooth peak has neither)
+        stuck = np.abs(np.abs(g[:, k]) - top) <= 1e-6 * max(top, 1e-9)
+        if top > 0 and stuck.mean() > 0.02 and np.median(np.abs(r[stuck, k])) > 1.2 * top:
+            out["saturated"][k] = float(top)
+    out["gt_scale"] = float(np.median(np.linalg.norm(r, axis=1) / np.maximum(np.linalg.norm(g, axis=1), 1e-12)))
+    # how well each body axis is excited: the rotation is only identifiable about axes the
+    # recording turns about (a trolley barely rolls or pitches)
+    # (an axis counts when its rate spreads by more than 10 deg/s: OxIOD's trolleys roll and
+    # pitch by 6-8 deg/s of vibration, too little to fit a rotation about those axes)
+    out["excited_axes"] = [k for k in range(3) if gt_spread[k] > excited]
+    a = np.linalg.lstsq(g, r, rcond=None)[0].T  # r ≈ a g
+    # how much of the expected signal the map explains: judged only where it explains most (an
+    # accelerometer in fast translation reads mostly its own motion, not gravity)
+    out["explained"] = float(1.0 - ((r - g @ a.T) ** 2).sum() / max(((r - r.mean(0)) ** 2).sum(), 1e-12))
+    out["gyro_to_gt"] = a
+    perm = np.zeros((3, 3))
+    used = set()
+    for i in np.argsort(-np.abs(a).max(1)):  # strongest rows first
+        j = max((j for j in range(3) if j not in used), key=lambda j: abs(a[i, j]))
+        used.add(j)
+        perm[i, j] = np.sign(a[i, j]) or 1.0
+    out["wiring"] = perm
+    out["det"] = float(np.sign(np.linalg.det(a)))
+    u, _, vt = np.linalg.svd(a)
+    rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    out["misalignment_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
     return out
 
 

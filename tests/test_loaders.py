@@ -73,6 +73,14 @@ def smooth_rotation(t: np.ndarray) -> Rotation:
     return Rotation.from_rotvec(rv)
 
 
+def smooth_body_rate(t: np.ndarray) -> np.ndarray:
+    """(N, 3) body rate (rad/s) of :func:`smooth_rotation` (a gyro that agrees with it, as the
+    loaders' ground-truth checks require): central differences of a finely sampled motion."""
+    h = 1e-4
+    r0, r1 = smooth_rotation(t - h), smooth_rotation(t + h)
+    return (r0.inv() * r1).as_rotvec() / (2 * h)
+
+
 # =========================================================================== BROAD
 @pytest.fixture(scope="module")
 def broad_real():
@@ -110,7 +118,7 @@ def _write_broad(path: Path, n=600, rate=285.71428571, dtype=np.float64, nan_row
                  drop=None, gyro_nan=False):
     t = np.arange(n) / rate
     rot = smooth_rotation(t)
-    omega = np.tile([0.0, 0.0, 0.0], (n, 1))
+    omega = smooth_body_rate(t)
     acc = rot.inv().apply([0, 0, GRAVITY])
     quat = wxyz(rot)
     quat[nan_rows] = np.nan
@@ -198,7 +206,7 @@ def test_euroc_real_gyro_matches_ground_truth(euroc_real):
 
 def _write_asl(seq_dir: Path, gt_dir: str, t_imu_ns, t_gt_ns, full_gt: bool, header_variant: int):
     rot_imu = smooth_rotation(t_imu_ns * 1e-9)
-    gyro = np.tile([0.01, 0.02, 0.03], (t_imu_ns.size, 1))
+    gyro = smooth_body_rate(t_imu_ns * 1e-9) + [0.01, 0.02, 0.03]  # agrees with the ground truth, plus a bias
     acc = rot_imu.inv().apply([0, 0, GRAVITY])
     (seq_dir / "mav0" / "imu0").mkdir(parents=True)
     (seq_dir / "mav0" / gt_dir).mkdir(parents=True)
