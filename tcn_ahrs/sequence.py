@@ -173,12 +173,17 @@ class ImuSequence:
         """Timestamps in seconds, no gap the attitude would be integrated across."""
         d = np.diff(self.time)
         step = float(np.median(d))
-        if step > 0.5:
-            self._fail("time", f"expected seconds; the median step is {step:.4g} (a {1.0 / step:.3g} Hz IMU): "
-                               "timestamps in milliseconds? declare time_unit: ms (or convert to s)")
-        if step < 1e-5:
-            self._fail("time", f"expected seconds; the median step is {step:.3g} (a {1.0 / step:.3g} Hz IMU): "
-                               "timestamps in microseconds or nanoseconds? declare time_unit: us / ns")
+        if step > 0.5 or step < 1e-5:
+            # the unit in which the file's own step is an IMU's (1 Hz - 20 kHz), given what was declared
+            factors = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+            declared = str((self.meta.get("declared") or {}).get("time_unit", "s"))
+            raw = step / factors.get(declared, 1.0)
+            unit = next((u for u, f in factors.items() if 1.0 <= 1.0 / (raw * f) <= 2e4), None)
+            names = {"s": "seconds", "ms": "milliseconds", "us": "microseconds", "ns": "nanoseconds"}
+            said = f" (declared time_unit: {declared})" if declared != "s" else ""
+            self._fail("time", f"expected seconds; the median step is {step:.4g} s{said}, a {1.0 / step:.3g} Hz IMU: "
+                               + (f"the timestamps look like {names[unit]}: declare time_unit: {unit}" if unit
+                                  else "check the timestamps' unit"))
         limit = max(MAX_GAP_STEPS * step, MAX_GAP_S)
         if float(d.max()) > limit:
             i = int(np.argmax(d))

@@ -213,7 +213,7 @@ def _arbitrary_field_units(c):
     (_gravity_not_specific_force, "accel", r"acc_sign: gravity"),
     (_xyzw, "quat", r"in x,y,z,w order \(HDF5: declare quat_order: xyzw"),
     (_ten_second_gap, "time", r"a gap of 10.01 s between samples 999 and 1000 .* split the recording there"),
-    (_milliseconds, "time", r"timestamps in milliseconds\? declare time_unit: ms"),
+    (_milliseconds, "time", r"the timestamps look like milliseconds: declare time_unit: ms"),
     (_x_up_ground_truth, "accel", r"frame is not z-up: declare its nav_frame"),
 ])
 def test_undeclared_units_frames_and_gaps_are_refused_with_the_fix(tmp_path, edit, field, message):
@@ -586,3 +586,56 @@ def test_twenty_second_clips_of_real_fast_translation_are_accepted(tmp_path):
             assert _load(p).quat is not None
             loaded += 1
     assert loaded >= 3
+
+
+def _time_scaled(f):
+    def edit(c):
+        c["t"] = c["t"] * f
+    return edit
+
+
+def _scaled_quaternions(c):
+    c["quat"] = c["quat"] * 1.5
+
+
+@pytest.mark.parametrize("edit, sidecar, field, message", [
+    (_time_scaled(1e6), None, "time", r"look like microseconds: declare time_unit: us"),
+    (_time_scaled(1e9), None, "time", r"look like nanoseconds: declare time_unit: ns"),
+    (_time_scaled(1e6), "time_unit: ms\n", "time", r"\(declared time_unit: ms\).* look like microseconds"),
+    (None, "rate: 200\n", "rate", r"declared 200 Hz, but the timestamps step at 100 Hz"),
+    (None, "rate: fast\n", "rate", r"expected the nominal rate as a number in Hz, got 'fast'"),
+    (_scaled_quaternions, "nav_frame: NED\n", "quat", r"expected unit quaternions, found norm 1.5"),
+])
+def test_declarations_and_timestamps_are_checked_against_the_data(tmp_path, edit, sidecar, field, message):
+    from tcn_ahrs.sequence import DataError
+
+    path = _recording(tmp_path, edit, sidecar)
+    with pytest.raises(DataError, match=message) as e:
+        _load(path)
+    assert e.value.field_name == field and str(path).replace(".csv", "") in str(e.value)
+
+
+def test_duplicate_columns_misspelt_hdf5_attributes_and_non_utf8_files_are_named(tmp_path):
+    import h5py
+    import numpy as np
+
+    from tcn_ahrs.sequence import DataError
+
+    path = _recording(tmp_path)
+    lines = path.read_text().splitlines()
+    path.write_text("\n".join([lines[0].replace("mag_x", "gyr_x")] + lines[1:]) + "\n")
+    with pytest.raises(DataError, match=r"column name\(s\) \['gyr_x'\] appear more than once") as e:
+        _load(path)
+    assert e.value.field_name == "header"
+    path.write_bytes(b"t,gyr_x\n0.0,\xff\xfe\n")
+    with pytest.raises(DataError, match=r"expected UTF-8 text") as e:
+        _load(path)
+    assert str(path) in str(e.value)
+    h5 = tmp_path / "r.h5"
+    with h5py.File(h5, "w") as f:
+        f["t"], f["gyr"], f["acc"] = np.arange(300) * 0.01, np.zeros((300, 3)), np.tile([0.0, 0.0, 9.81], (300, 1))
+        f.attrs["mag_units"] = "G"
+        f.attrs["description"] = "a bench test"  # other attributes may stay
+    with pytest.raises(DataError, match=r"unknown declaration \(did you mean 'mag_unit'\?\)") as e:
+        _load(h5)
+    assert e.value.field_name == "mag_units"

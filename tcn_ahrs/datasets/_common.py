@@ -78,14 +78,22 @@ def read_numeric_csv(path: Path, header: bool, ncols: Sequence[int] | None = Non
     path = Path(path)
     if not path.is_file():
         raise DataError(str(path), "file", "expected a file, found nothing there")
-    with open(path, "r", encoding="utf-8-sig") as fh:
-        lines = [ln.strip() for ln in fh]
+    try:
+        with open(path, "r", encoding="utf-8-sig") as fh:
+            lines = [ln.strip() for ln in fh]
+    except UnicodeDecodeError as e:
+        raise DataError(str(path), "file", f"expected UTF-8 text, byte {e.start} is not ({e.reason}): save the "
+                                           "file as UTF-8 (or plain ASCII)") from None
     lines = [ln for ln in lines if ln]
     names: List[str] = []
     if header:
         if not lines:
             raise DataError(str(path), "file", "expected a header row and data rows, the file is empty")
         names = [c.strip() for c in lines[0].split(",")]
+        twice = sorted({n for n in names if names.count(n) > 1 and n})
+        if twice:
+            raise DataError(str(path), "header", f"column name(s) {twice} appear more than once: which column "
+                                                 "holds the data is ambiguous; rename or drop the duplicates")
         if len(names) == 1 and any(d in lines[0] for d in (";", "\t")):
             sep = "';'" if ";" in lines[0] else "a tab"
             raise DataError(str(path), "header", f"expected comma-separated columns, the header is separated "

@@ -168,7 +168,13 @@ def _read_hdf5(path: Path):
                     raise DataError(src, key, f"could not read dataset (truncated or corrupt file?): {e}") from None
             else:
                 arrays[key] = None
-        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in fh.attrs.items() if k in ATTR_KEYS}
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in fh.attrs.items()}
+        # other attributes (a description, a creator) may stay; one that looks like a misspelt
+        # declaration (mag_units, quat_ordr) must not be ignored
+        import difflib
+
+        attrs = {k: v for k, v in attrs.items()
+                 if k in ATTR_KEYS or difflib.get_close_matches(str(k), ATTR_KEYS, n=1, cutoff=0.75)}
     order = str(attrs.get("quat_order", "wxyz")).lower()
     if order not in ("wxyz", "xyzw"):
         raise DataError(src, "quat_order", f"expected 'wxyz' or 'xyzw', got {order!r}")
@@ -253,6 +259,9 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     if a["quat"] is not None:
         quat = np.asarray(a["quat"], dtype=np.float64)
         valid = np.all(np.isfinite(quat), axis=1)
+        norms = np.linalg.norm(quat[valid], axis=1)
+        if norms.size and np.max(np.abs(norms - 1.0)) > 1e-2:  # before any declared frame renormalises them
+            raise DataError(src, "quat", f"expected unit quaternions, found norm {norms.min():.4f}..{norms.max():.4f}")
         c_nav = _rotation(src, "nav_frame", attrs.get("nav_frame", "ENU"), quaternion=False)
         c_body = _rotation(src, "gt_body_from_imu", attrs.get("gt_body_from_imu"), quaternion=True)
         if (c_nav is not None or c_body is not None) and valid.any():
@@ -271,7 +280,15 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
         if s.shape != (n,):
             raise DataError(src, "score", f"expected shape ({n},), got {s.shape}")
         score = np.nan_to_num(s, nan=0.0) > 0.5
-    rate = float(attrs.get("rate", 0.0) or 0.0)
+    try:
+        rate = float(attrs.get("rate", 0.0) or 0.0)
+    except (TypeError, ValueError):
+        raise DataError(src, "rate", f"expected the nominal rate as a number in Hz, got {attrs.get('rate')!r}") from None
+    if rate:
+        measured = 1.0 / float(np.median(np.diff(t)))
+        if not (rate > 0 and abs(rate / measured - 1.0) <= 0.05):
+            raise DataError(src, "rate", f"declared {rate:g} Hz, but the timestamps step at {measured:.4g} Hz "
+                                         "(median): correct the declaration or drop it (the rate is read from t)")
     meta = {"dataset": dataset, "declared": {k: attrs[k] for k in ATTR_KEYS if k in attrs}}
     return ImuSequence(name=name, source=src, time=t, gyro=gyro, accel=acc, mag=mag, quat=quat,
                        quat_valid=valid, score_mask=score, rate=rate, meta=meta)
