@@ -56,6 +56,7 @@ from .estimators import registry
 from .evaluate.reports import average_rows, compare_markdown
 from .evaluate.runner import jsonable
 from .sequence import ImuSequence
+from .validate import set_threads
 
 # ===========================================================================
 # tuning
@@ -314,8 +315,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
     unknown = set(k for k in cfg.keys() if k not in ("data", "hydra")) - set(allowed_keys)
     if unknown:
         raise ValueError(f"{kind} config: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed_keys)}")
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    set_threads(cfg.get("threads"))
     split = str(cfg.data.get("split", "test"))
     tune_split = str(cfg.get("tune_split") or "train")
     if tune_split not in ("train", "trainval"):

@@ -28,7 +28,7 @@ from .data import AHRSDataModule, augment
 from .losses import attitude_loss, increment_loss, trust_loss
 from .model.ahrs import LearnedAHRS
 from .cli import output_dir
-from .validate import check_keys, check_number
+from .validate import check_keys, check_number, set_threads
 
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
@@ -284,6 +284,15 @@ def check_train_values(train: Mapping) -> None:
             check_number(train.get(k), f"train.{k}", kind, low, low_ok, high)
     for k, v in (train.get("noise") or {}).items():
         check_number(v, f"train.noise.{k}", float, 0.0)
+    if train.get("monitor") is not None and str(train.get("monitor")) not in MONITORS:
+        import difflib
+
+        near = difflib.get_close_matches(str(train.get("monitor")), MONITORS, n=1)
+        raise ValueError(f"train.monitor: expected one of {list(MONITORS)} (the validation metrics logged), got "
+                         f"{train.get('monitor')!r}" + (f" (did you mean {near[0]!r}?)" if near else ""))
+
+
+MONITORS = ("val/loss", "val/aae_deg")
 
 
 def model_axes(cfg) -> int:
@@ -493,8 +502,10 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         cfg = resume_config(cfg, _run_dir(cfg), overrides if overrides is not None else command_line_overrides())
     check_keys(cfg.train, TRAIN_KEYS, "train")
     check_train_values(cfg.train)
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    from .estimators.registry import check_method_names
+
+    check_method_names((cfg.get("eval") or {}).get("baselines"))  # a typo fails now, not after training
+    set_threads(cfg.get("threads"))
     pl.seed_everything(int(cfg.seed), workers=True)
     run_dir = _run_dir(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)

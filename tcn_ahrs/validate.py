@@ -31,3 +31,12 @@ def check_keys(section, allowed: set, where: str) -> None:
     unknown = set(section) - set(allowed)
     if unknown:
         raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed)}")
+
+
+def set_threads(value: Any) -> None:
+    """``threads=N``: torch's CPU threads (None: torch's default); an integer >= 1."""
+    if value is None:
+        return
+    import torch
+
+    torch.set_num_threads(check_number(value, "threads", int, 1))

@@ -639,3 +639,17 @@ def test_duplicate_columns_misspelt_hdf5_attributes_and_non_utf8_files_are_named
     with pytest.raises(DataError, match=r"unknown declaration \(did you mean 'mag_unit'\?\)") as e:
         _load(h5)
     assert e.value.field_name == "mag_units"
+
+
+def test_config_values_fail_early_with_the_key_and_the_nearest_valid_value():
+    from tcn_ahrs.estimators.registry import baseline_estimators
+    from tcn_ahrs.train import check_train_values
+    from tcn_ahrs.validate import set_threads
+
+    with pytest.raises(ValueError, match=r"threads: expected an integer >= 1, got -3"):
+        set_threads(-3)
+    with pytest.raises(ValueError, match=r"train.monitor: expected one of \['val/loss', 'val/aae_deg'\].*'val/foo'"):
+        check_train_values({"monitor": "val/foo"})
+    with pytest.raises(ValueError, match=r"baselines: unknown method 'vqff' \(did you mean 'vqf'\?\)"):
+        baseline_estimators(["raw", "vqff"], 9)
+    assert len(baseline_estimators(["raw", "ecf6d"], 9)) == 2

@@ -161,11 +161,27 @@ def build(name: str, axes: Optional[int] = None, label: Optional[str] = None, **
     return est
 
 
+def check_method_names(names: Optional[Sequence[str]]) -> None:
+    """ValueError for a name that is no registered method (``vqf``) nor column (``vqf6d``),
+    naming the nearest: a misspelt baseline must not be skipped silently."""
+    import difflib
+
+    known = list(methods())
+    for n in names or []:
+        n = str(n)
+        if n in known or (n[-2:] in ("6d", "9d") and n[:-2] in known):
+            continue
+        near = difflib.get_close_matches(n, known, n=1)
+        raise ValueError(f"baselines: unknown method {n!r}" + (f" (did you mean {near[0]!r}?)" if near else "")
+                         + f"; expected one of {sorted(known)} (or a column name such as 'vqf6d')")
+
+
 def baseline_estimators(names: Optional[Sequence[str]], axes: int = 9) -> List[Any]:
     """Baselines by name for ``train``'s and ``evaluate``'s tables: method names (``raw``,
     ``ecf``, ``vqf``, ...) at the data's ``axes`` (or the method's own when it runs only at
     others), or column names (``vqf6d``). Unavailable or unknown ones are skipped with a
     warning (a missing baseline must not lose a trained model's evaluation)."""
+    check_method_names(names)
     out = []
     for n in names or []:
         n = str(n)

@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 
 from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
 from ..cli import output_dir, refuse_earlier_output, staged_output
-from ..validate import check_keys
+from ..validate import check_keys, set_threads
 from .reports import print_table
 from .runner import evaluate
 
@@ -23,8 +23,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     from ..estimators.learned import LearnedEstimator
 
     check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
+    set_threads(cfg.get("threads"))
     if not cfg.get("ckpt"):
         raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
     # run_dir= (a training run): its eval/ subfolder, never the run's own files
