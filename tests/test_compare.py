@@ -3,7 +3,6 @@ heading-free scoring, tables, the Hydra entry points (short simulated recordings
 import importlib.util
 import json
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np

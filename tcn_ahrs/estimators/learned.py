@@ -1,8 +1,6 @@
 """The learned AHRS as an :class:`~tcn_ahrs.estimators.base.Estimator` (wraps a trained checkpoint)."""
 from __future__ import annotations
 
-import copy
-
 import warnings
 from pathlib import Path
 from typing import Optional, Union

@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import ast
 import inspect
-import math
+import math  # noqa: F401 - resolved by name from this module when TorchScript compiles OPS_SOURCE
 import re
 import sys
-import textwrap
 from types import ModuleType
 from typing import Dict
 
