@@ -196,6 +196,48 @@ class _Peer:
         return quat if m is None else _quat_mul(_quat_conj(m), quat)
 
 
+def is_constant_period(seq: ImuSequence, tol: float = 0.1) -> bool:
+    """Every step within ``tol`` (relative) of the nominal period 1 / rate."""
+    d = seq.dt[1:]
+    return not d.size or float((np.abs(d - 1.0 / float(seq.rate)) * float(seq.rate)).max()) <= tol
+
+
+def run_resampled(est, seq: ImuSequence, init_quat: Optional[np.ndarray], init_index: int) -> EstimatorOutput:
+    """``est`` (a peer that takes one fixed period) on an irregular recording: the IMU
+    interpolated linearly onto a uniform grid at the recording's median rate, the estimator run
+    there from the grid point nearest to ``init_index``'s time, its attitudes mapped back to the
+    recording's own timestamps (normalised linear interpolation between the two neighbouring grid
+    points: steps of a few ms), numeric signals interpolated, flags taken from the nearest point.
+    The ground truth is never interpolated (scores stay on the recording's samples)."""
+    t = seq.time
+    rate = float(1.0 / np.median(np.diff(t)))
+    grid = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * rate)) + 1) / rate
+
+    def lerp(x):
+        return np.stack([np.interp(grid, t, x[:, k]) for k in range(x.shape[1])], 1)
+
+    uniform = ImuSequence(name=seq.name, source=seq.source, time=grid, gyro=lerp(seq.gyro), accel=lerp(seq.accel),
+                          mag=None if seq.mag is None else lerp(seq.mag), rate=rate, check_units=False,
+                          meta=dict(seq.meta))
+    k0 = int(np.clip(np.searchsorted(grid, t[init_index]), 0, len(grid) - 1))
+    out = est.run(uniform, init_quat, k0)
+    j = np.clip(np.searchsorted(grid, t, side="right") - 1, 0, len(grid) - 2)
+    w = ((t - grid[j]) * rate).clip(0.0, 1.0)[:, None]
+    qa, qb = out.quat[j], out.quat[j + 1]
+    qb = np.where((qa * qb).sum(1, keepdims=True) < 0, -qb, qb)  # the shorter way
+    quat = (1 - w) * qa + w * qb
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+    nearest = np.clip(np.rint((t - grid[0]) * rate).astype(int), 0, len(grid) - 1)
+    signals = {}
+    for name, v in (out.signals or {}).items():
+        v = np.asarray(v)
+        if v.dtype.kind == "f" and v.shape[0] == len(grid):
+            signals[name] = (1 - w.reshape((-1,) + (1,) * (v.ndim - 1))) * v[j] + w.reshape((-1,) + (1,) * (v.ndim - 1)) * v[j + 1]
+        elif v.shape[:1] == (len(grid),):
+            signals[name] = v[nearest]
+    return EstimatorOutput(quat=quat, signals=signals)
+
+
 def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
     """The sample period (s) of ``seq`` for a peer that takes one fixed period (VQF, RIANN);
     a ``ValueError`` when any step differs from the nominal period by more than ``tol``
@@ -248,6 +290,8 @@ class VQFEstimator(_Peer):
 
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
             init_index: int = 0) -> EstimatorOutput:
+        if not is_constant_period(seq):  # VQF takes one fixed period: run it on a uniform grid
+            return run_resampled(self, seq, init_quat, init_index)
         # VQF's C++ binding wants C-contiguous float64 (N,3) buffers: slices/float32 break it.
         gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)

@@ -14,7 +14,7 @@ import numpy as np
 from ..sequence import ImuSequence
 from . import peers
 from .base import EstimatorOutput
-from .peers import _constant_period, _Peer, _to_enu
+from .peers import _constant_period, _Peer, _to_enu, is_constant_period, run_resampled
 from .registry import register
 
 __all__ = ["RIANNEstimator"]
@@ -49,6 +49,8 @@ class RIANNEstimator(_Peer):
 
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
             init_index: int = 0) -> EstimatorOutput:
+        if not is_constant_period(seq):  # RIANN takes one fixed rate: run it on a uniform grid
+            return run_resampled(self, seq, init_quat, init_index)
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
         gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
         fs = 1.0 / _constant_period(seq, self.name)
