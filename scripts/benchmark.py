@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tcn_ahrs.cli import user_errors  # noqa: E402
+from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
 
 MODES = ("accuracy", "speed", "transfer")
 
@@ -57,4 +57,5 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     _mode_from_argv(sys.argv)
+    check_overrides("benchmark")  # a config error as one line with the nearest key (exit 2)
     main()

@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tcn_ahrs.cli import user_errors  # noqa: E402
+from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="crossval")
@@ -28,4 +28,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_overrides("crossval")  # a config error as one line with the nearest key (exit 2)
     main()

@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tcn_ahrs.cli import user_errors  # noqa: E402
+from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
 
 KEYS = {"ckpt", "out", "mode", "rate", "net_dtype", "overwrite"}
 
@@ -44,4 +44,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_overrides("export")  # a config error as one line with the nearest key (exit 2)
     main()

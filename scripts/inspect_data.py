@@ -16,7 +16,7 @@ from omegaconf import DictConfig, open_dict
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tcn_ahrs.cli import user_errors  # noqa: E402
+from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
 
 from tcn_ahrs.datasets import format_summary_table, load_split, summarize  # noqa: E402
 
@@ -38,4 +38,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_overrides("inspect_data")  # a config error as one line with the nearest key (exit 2)
     main()

@@ -96,3 +96,54 @@ def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterato
         shutil.rmtree(old)
     else:
         stage.rename(out)
+
+
+def _leaf_keys(cfg, prefix: str = "") -> List[str]:
+    from omegaconf import DictConfig
+
+    out = []
+    for k, v in cfg.items():
+        out += _leaf_keys(v, f"{prefix}{k}.") if isinstance(v, DictConfig) else [f"{prefix}{k}"]
+    return out
+
+
+def check_overrides(config_name: str, argv: Optional[List[str]] = None) -> None:
+    """Compose ``config_name`` with the command line's ``key=value`` overrides before Hydra does:
+    a misspelt key, a missing group option or a bad value becomes the scripts' one-line error
+    (exit 2) with the nearest valid key or option, instead of Hydra's multi-line report (exit 1).
+    Arguments Hydra handles itself (``--cfg``, ``-m``, ``hydra.*``) are left to it."""
+    import difflib
+    import re
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if any(a.startswith("-") for a in args):
+        return
+    overrides = [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]
+    if not overrides:
+        return
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    try:
+        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+            compose(config_name, overrides=overrides)
+        return
+    except Exception as e:  # noqa: BLE001 - Hydra and OmegaConf raise many types
+        text = str(e)
+    if os.environ.get("HYDRA_FULL_ERROR") == "1":
+        return  # Hydra reports it with the traceback
+    first = text.strip().splitlines()[0] if text.strip() else "invalid override"
+    hint = ""
+    m = re.search(r"full_key: (\S+)", text) or re.search(r"Could not override '([^']+)'", text)
+    group = re.search(r"Could not find '([^/']+)/([^']+)'", text)
+    if group:
+        options = re.findall(r"^\t(\S+)$", text, flags=re.M)
+        near = difflib.get_close_matches(group.group(2), options, n=1)
+        hint = f" (did you mean {group.group(1)}={near[0]}?)" if near else f" (options: {', '.join(options)})"
+    elif m:
+        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+            keys = _leaf_keys(compose(config_name, overrides=[o for o in overrides if not o.startswith(m.group(1) + "=")]))
+        near = difflib.get_close_matches(m.group(1), keys, n=1, cutoff=0.6)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+    print(f"error: {config_name} config: {first}{hint}\n(HYDRA_FULL_ERROR=1 shows Hydra's report)", file=sys.stderr)
+    raise SystemExit(EXIT_USER_ERROR)

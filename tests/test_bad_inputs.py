@@ -132,6 +132,27 @@ def test_scripts_print_one_line_and_exit_2_on_a_user_error(tmp_path):
     assert "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize("script, args, message", [
+    ("train", ["train.epoch=3"], r"error: train config: Could not override 'train.epoch'\. \(did you mean 'train.epochs'\?\)"),
+    ("evaluate", ["data.splt=test"], r"error: evaluate config: .*'data.splt'.* \(did you mean 'data.split'\?\)"),
+    ("train", ["data=broadd"], r"error: train config: .*Could not find 'data/broadd' \(did you mean data=broad\?\)"),
+])
+def test_hydra_config_errors_are_one_line_with_the_nearest_key(tmp_path, script, args, message):
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / f"{script}.py"
+    env = dict(os.environ)
+    env.pop("HYDRA_FULL_ERROR", None)
+    r = subprocess.run([sys.executable, str(path)] + args, capture_output=True, text=True, env=env, cwd=tmp_path,
+                       timeout=300)
+    assert r.returncode == 2 and re.match(message, r.stderr), r.stderr
+    assert len(r.stderr.strip().splitlines()) == 2  # the error and how to see Hydra's full report
+
+
 # ------------------------------------------------------------ recordings (generic format)
 HEADER = "t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z,quat_w,quat_x,quat_y,quat_z"
 
