@@ -327,6 +327,9 @@ class ImuSequence:
     def _check_units(self) -> None:
         """Catch the common unit mistakes: deg/s gyros, accelerometers in g, fields in Gauss."""
         acc_norm = float(np.median(np.linalg.norm(self.accel, axis=1)))
+        if acc_norm < 0.02 * GRAVITY:
+            self._fail("accel", f"reads (almost) zero (median norm {acc_norm:.3g} m/s^2; gravity alone gives 9.81): a "
+                                "dead or disconnected accelerometer; this recording cannot be used")
         if acc_norm < 0.3 * GRAVITY:
             self._fail("accel", f"expected specific force in m/s^2 (median norm ~9.8), got median norm "
                                 f"{acc_norm:.3g}: is it in g? convert with conventions.g_to_mps2")

@@ -685,3 +685,26 @@ def test_config_values_fail_early_with_the_key_and_the_nearest_valid_value():
     with pytest.raises(ValueError, match=r"baselines: unknown method 'vqff' \(did you mean 'vqf'\?\)"):
         baseline_estimators(["raw", "vqff"], 9)
     assert len(baseline_estimators(["raw", "ecf6d"], 9)) == 2
+
+
+def test_a_dead_accelerometer_is_named_as_such(tmp_path):
+    from tcn_ahrs.sequence import DataError
+
+    def dead(c):
+        c["acc"] = c["acc"] * 0.0
+
+    with pytest.raises(DataError, match=r"reads \(almost\) zero .* a dead or disconnected accelerometer") as e:
+        _load(_recording(tmp_path, dead))
+    assert e.value.field_name == "accel"
+
+
+def test_an_export_that_cannot_be_written_is_a_clean_error(tmp_path, monkeypatch):
+    import tcn_ahrs.export as ex
+
+    def read_only(*a, **k):
+        raise RuntimeError("File m.pt cannot be opened: Permission denied")
+
+    monkeypatch.setattr(ex.torch.jit, "save", read_only)
+    with pytest.raises(ex.ExportError, match=r"export: cannot write .* Permission denied"):
+        ex.export_checkpoint("checkpoints/closed_loop/broad6.ckpt", tmp_path / "m.pt")
+    assert not list(tmp_path.iterdir())  # nothing half-written left behind
