@@ -1,5 +1,6 @@
 """Bad input gets a clear error, never a silently wrong result (one test per case)."""
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -9,6 +10,7 @@ from tcn_ahrs.model.ahrs import LearnedAHRS
 
 N = 120
 RATE = 100.0
+CKPTS = Path(__file__).resolve().parents[1] / "checkpoints"
 
 
 def _exported(tmp_path, loop: str):
@@ -430,7 +432,7 @@ def test_compiled_streaming_refuses_spikes_huge_steps_and_a_matrix_sample():
 def test_a_checkpoint_with_nan_weights_is_refused_at_load(tmp_path):
     from tcn_ahrs.checkpoint import CheckpointError, model_from_checkpoint
 
-    ck = torch.load("checkpoints/broad6.ckpt", map_location="cpu", weights_only=False)
+    ck = torch.load(CKPTS / "broad6.ckpt", map_location="cpu", weights_only=False)
     key = next(k for k, v in ck["state_dict"].items() if v.is_floating_point() and v.numel() > 1)
     ck["state_dict"][key] = ck["state_dict"][key].clone()
     ck["state_dict"][key].view(-1)[0] = math.nan
@@ -473,10 +475,10 @@ def test_export_writes_both_files_or_neither_and_refuses_to_overwrite(tmp_path, 
     import tcn_ahrs.export as ex
 
     out = tmp_path / "m.pt"
-    written = ex.export_checkpoint("checkpoints/closed_loop/broad6.ckpt", out)
+    written = ex.export_checkpoint(CKPTS / "closed_loop" / "broad6.ckpt", out)
     assert set(written) == {"batch", "streaming"} and out.exists() and ex.streaming_path(out).exists()
     with pytest.raises(ex.ExportError, match="already exist.*overwrite=true"):
-        ex.export_checkpoint("checkpoints/closed_loop/broad6.ckpt", out)
+        ex.export_checkpoint(CKPTS / "closed_loop" / "broad6.ckpt", out)
     before = (out.read_bytes(), ex.streaming_path(out).read_bytes())
 
     def killed(*a, **k):
@@ -484,7 +486,7 @@ def test_export_writes_both_files_or_neither_and_refuses_to_overwrite(tmp_path, 
 
     monkeypatch.setattr(ex, "export_streaming", killed)  # dies after the batch file is written
     with pytest.raises(KeyboardInterrupt):
-        ex.export_checkpoint("checkpoints/broad6.ckpt", out, overwrite=True)
+        ex.export_checkpoint(CKPTS / "broad6.ckpt", out, overwrite=True)
     assert (out.read_bytes(), ex.streaming_path(out).read_bytes()) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pt", "m_streaming.pt"]
 
@@ -706,5 +708,5 @@ def test_an_export_that_cannot_be_written_is_a_clean_error(tmp_path, monkeypatch
 
     monkeypatch.setattr(ex.torch.jit, "save", read_only)
     with pytest.raises(ex.ExportError, match=r"export: cannot write .* Permission denied"):
-        ex.export_checkpoint("checkpoints/closed_loop/broad6.ckpt", tmp_path / "m.pt")
+        ex.export_checkpoint(CKPTS / "closed_loop" / "broad6.ckpt", tmp_path / "m.pt")
     assert not list(tmp_path.iterdir())  # nothing half-written left behind
