@@ -397,7 +397,7 @@ def ground_truth_agreement(seq: "ImuSequence", lag_s: float = 0.05, min_rate: fl
            "up_concentration": float(unit.mean(0).norm())}
     # the accelerometer per axis against the gravity the ground truth predicts in the body frame
     expected = so3.quat_rotate(so3.quat_conj(qv), torch.tensor([0.0, 0.0, GRAVITY], dtype=torch.float64).expand_as(a))
-    out["accel_fit"] = _axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, saturation=False)
+    out["accel_fit"] = _axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, 1e-3, saturation=False)
     if ok.sum() < 30:
         return out
     okt = torch.as_tensor(ok)
@@ -410,7 +410,7 @@ def ground_truth_agreement(seq: "ImuSequence", lag_s: float = 0.05, min_rate: fl
         return so3.quat_log(so3.quat_mul(so3.quat_conj(qq[:-lag][okt]), qq[lag:][okt])) / span
 
     w_gt = gt_rate(q)
-    out.update(_axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE))  # needs only the ground truth to turn
+    out.update(_axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE, 1e-4))  # needs only the ground truth to turn
     moving = (w_gyro.norm(dim=1) > min_rate) & (w_gt.norm(dim=1) > min_rate)
     out["moving"] = int(moving.sum())
     if out["moving"] < 30:
@@ -426,7 +426,7 @@ def ground_truth_agreement(seq: "ImuSequence", lag_s: float = 0.05, min_rate: fl
     return out
 
 
-def _axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: float,
+def _axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: float, floor: float,
               saturation: bool = True) -> dict:
     """Per-axis agreement of the gyro with the ground-truth body rate, on the samples where the
     ground truth turns (w_gt faster than ``min_rate``; the gyro may read anything there):
@@ -445,7 +445,9 @@ def _axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: fl
         return out
     g, r = w_gyro[moving], w_gt[moving]
     gt_spread = r.std(0)
-    out["dead_axes"] = [k for k in range(3) if g[:, k].std() < 0.02 * max(gt_spread[k], min_rate)
+    # dead: (almost) constant — below any sensor's noise (``floor``) and 50x below what the
+    # ground truth predicts (a multicopter's accelerometer barely sees tilt, yet still reads noise)
+    out["dead_axes"] = [k for k in range(3) if g[:, k].std() < min(0.02 * max(gt_spread[k], min_rate), floor)
                         and gt_spread[k] > max(min_rate / 2, 0.1 * excited)]
     for k in range(3 if saturation else 0):
         top = np.abs(g[:, k]).max()
