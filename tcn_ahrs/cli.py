@@ -107,11 +107,13 @@ def _leaf_keys(cfg, prefix: str = "") -> List[str]:
     return out
 
 
-def check_overrides(config_name: str, argv: Optional[List[str]] = None) -> None:
+def check_overrides(config_name: str, argv: Optional[List[str]] = None, conf_dir=None) -> None:
     """Compose ``config_name`` with the command line's ``key=value`` overrides before Hydra does:
     a misspelt key, a missing group option or a bad value becomes the scripts' one-line error
     (exit 2) with the nearest valid key or option, instead of Hydra's multi-line report (exit 1).
-    Arguments Hydra handles itself (``--cfg``, ``-m``, ``hydra.*``) are left to it."""
+    Arguments Hydra handles itself (``--cfg``, ``-m``, ``hydra.*``) are left to it. ``conf_dir``:
+    the scripts' config folder (default: ``conf/`` beside the running script's folder, as their
+    ``@hydra.main(config_path="../conf")``); without one, Hydra reports as usual."""
     import difflib
     import re
 
@@ -123,13 +125,15 @@ def check_overrides(config_name: str, argv: Optional[List[str]] = None) -> None:
         return
     from hydra import compose, initialize_config_dir
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
-    try:
-        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-            compose(config_name, overrides=overrides)
+    conf = Path(conf_dir) if conf_dir is not None else Path(sys.argv[0]).resolve().parent.parent / "conf"
+    if not (conf / f"{config_name}.yaml").is_file():
         return
-    except Exception as e:  # noqa: BLE001 - Hydra and OmegaConf raise many types
-        text = str(e)
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        try:
+            compose(config_name, overrides=overrides)
+            return
+        except Exception as e:  # noqa: BLE001 - Hydra and OmegaConf raise many types
+            text = str(e)
     if os.environ.get("HYDRA_FULL_ERROR") == "1":
         return  # Hydra reports it with the traceback
     first = text.strip().splitlines()[0] if text.strip() else "invalid override"
