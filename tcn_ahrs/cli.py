@@ -98,12 +98,13 @@ def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterato
         stage.rename(out)
 
 
-def _leaf_keys(cfg, prefix: str = "") -> List[str]:
+def leaf_keys(cfg, prefix: str = "") -> List[str]:
+    """Every leaf of a config as a dotted key (``train.epochs``)."""
     from omegaconf import DictConfig
 
     out = []
     for k, v in cfg.items():
-        out += _leaf_keys(v, f"{prefix}{k}.") if isinstance(v, DictConfig) else [f"{prefix}{k}"]
+        out += leaf_keys(v, f"{prefix}{k}.") if isinstance(v, DictConfig) else [f"{prefix}{k}"]
     return out
 
 
@@ -146,7 +147,7 @@ def check_overrides(config_name: str, argv: Optional[List[str]] = None, conf_dir
         hint = f" (did you mean {group.group(1)}={near[0]}?)" if near else f" (options: {', '.join(options)})"
     elif m:
         with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-            keys = _leaf_keys(compose(config_name, overrides=[o for o in overrides if not o.startswith(m.group(1) + "=")]))
+            keys = leaf_keys(compose(config_name, overrides=[o for o in overrides if not o.startswith(m.group(1) + "=")]))
         near = difflib.get_close_matches(m.group(1), keys, n=1, cutoff=0.6)
         hint = f" (did you mean {near[0]!r}?)" if near else ""
     print(f"error: {config_name} config: {first}{hint}\n(HYDRA_FULL_ERROR=1 shows Hydra's report)", file=sys.stderr)

@@ -44,6 +44,8 @@ MAX_ACCEL = 4000.0  # m/s², per axis
 MAX_MAG = 10000.0   # µT, per axis
 MAX_DT = 1.0        # s, one time step
 INPUT_RANGES = {"gyro": MAX_GYRO, "accel": MAX_ACCEL, "mag": MAX_MAG}
+INPUT_LIMITS = (MAX_GYRO,) * 3 + (MAX_ACCEL,) * 3 + (MAX_MAG,) * 3
+"""The same per channel of a raw sample (gyro x,y,z, acc x,y,z, mag x,y,z)."""
 
 # ---------------------------------------------------------------- numerics: one float policy
 # Where precision matters is where values are multiplied or summed over many samples: attitude and

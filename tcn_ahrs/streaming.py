@@ -268,13 +268,13 @@ def _check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
     """ValueError unless every reading is finite and within the physical ranges
     (:data:`tcn_ahrs.conventions.INPUT_RANGES`) and every (used) step is finite, > 0 and
     <= :data:`~tcn_ahrs.conventions.MAX_DT` s."""
-    from .conventions import INPUT_RANGES, MAX_DT
+    from .conventions import INPUT_LIMITS, INPUT_RANGES, MAX_DT
 
     if not np.isfinite(xs).all():
         i = [int(v) for v in np.argwhere(~np.isfinite(xs))[0]]
         raise ValueError(f"sample: non-finite value at index {i} (expected finite readings: drop or "
                          "interpolate that sample)")
-    limit = np.array([INPUT_RANGES["gyro"]] * 3 + [INPUT_RANGES["accel"]] * 3 + [INPUT_RANGES["mag"]] * 3)[:xs.shape[1]]
+    limit = np.asarray(INPUT_LIMITS[:xs.shape[1]])
     if (np.abs(xs) > limit).any():
         i = [int(v) for v in np.argwhere(np.abs(xs) > limit)[0]]
         raise ValueError(f"sample: value {xs[i[0], i[1]]:.4g} at index {i} is beyond any sensor's range (|gyro| <= "

@@ -345,7 +345,9 @@ def resume_config(cfg: DictConfig, run_dir: Path, overrides: Optional[List[str]]
         return cfg
     saved = OmegaConf.load(saved_path)
     if overrides is None:
-        keys = [k for k in _leaf_keys(cfg) if k.split(".")[0] not in RESUME_KEYS]
+        from .cli import leaf_keys
+
+        keys = [k for k in leaf_keys(cfg) if k.split(".")[0] not in RESUME_KEYS]
     else:
         keys = [o.split("=", 1)[0].lstrip("+~") for o in overrides if "=" in o]
         keys = [k for k in keys if k.split(".")[0] not in RESUME_KEYS and k.split(".")[0] != "hydra"]
@@ -366,17 +368,6 @@ def resume_config(cfg: DictConfig, run_dir: Path, overrides: Optional[List[str]]
         print("resume: this command changes the saved run's configuration: " + "; ".join(changed)
               + f" (everything else as saved in {saved_path})")
     return out
-
-
-def _leaf_keys(cfg, prefix: str = "") -> List[str]:
-    keys = []
-    for k, v in cfg.items():
-        name = f"{prefix}{k}"
-        if isinstance(v, DictConfig):
-            keys += _leaf_keys(v, name + ".")
-        else:
-            keys.append(name)
-    return keys
 
 
 def trim_metrics(metrics_csv: Path, last_epoch: int, global_step: int) -> int:

@@ -7,7 +7,7 @@ from typing import List, Union
 import torch
 from torch import Tensor, nn
 
-from ..conventions import INPUT_RANGES, MAX_DT
+from ..conventions import INPUT_LIMITS, MAX_DT
 
 
 
@@ -28,9 +28,8 @@ class _Inputs(nn.Module):
 
     def __init__(self):
         super().__init__()
-        # per channel: gyro x,y,z, acc x,y,z, mag x,y,z (conventions.INPUT_RANGES)
-        self.register_buffer("input_limits", torch.tensor(
-            [INPUT_RANGES["gyro"]] * 3 + [INPUT_RANGES["accel"]] * 3 + [INPUT_RANGES["mag"]] * 3, dtype=torch.float64))
+        # per channel: gyro x,y,z, acc x,y,z, mag x,y,z (conventions.INPUT_LIMITS)
+        self.register_buffer("input_limits", torch.tensor(INPUT_LIMITS, dtype=torch.float64))
         self.max_dt = float(MAX_DT)
         self.max_dt_text = f"{MAX_DT:g}"
 
