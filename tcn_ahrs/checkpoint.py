@@ -13,7 +13,7 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Dict, Mapping, Optional
+from typing import Any, Dict, Mapping, Optional, Sequence
 
 import torch
 from pytorch_lightning.plugins.io import TorchCheckpointIO
@@ -76,12 +76,15 @@ class AtomicCheckpointIO(TorchCheckpointIO):
 
 
 def layout_meta(model_cfg: Mapping, axes: int, data_name: str = "",
-                rate_hz: Optional[float] = None) -> Dict[str, Any]:
-    """The record stored with every checkpoint: model config, input layout, training data and rate."""
-    return {"model": dict(model_cfg),
-            "layout": {"axes": int(axes), "channels": list(CHANNELS[int(axes)]),
-                       "rate_hz": None if rate_hz is None else float(rate_hz)},
-            "data": str(data_name)}
+                rate_hz: Optional[float] = None, rate_range_hz: Optional[Sequence[float]] = None) -> Dict[str, Any]:
+    """The record stored with every checkpoint: model config, input layout, training data and
+    rate; ``rate_range_hz`` (low, high): the rates it was trained at (random resampling), so
+    any recording in that range is its own."""
+    layout = {"axes": int(axes), "channels": list(CHANNELS[int(axes)]),
+              "rate_hz": None if rate_hz is None else float(rate_hz)}
+    if rate_range_hz:
+        layout["rate_range_hz"] = [float(rate_range_hz[0]), float(rate_range_hz[1])]
+    return {"model": dict(model_cfg), "layout": layout, "data": str(data_name)}
 
 
 def checkpoint_meta(ckpt: Mapping, path="checkpoint") -> Dict[str, Any]:
@@ -135,6 +138,8 @@ def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") 
                                   "use an earlier checkpoint of the run (e.g. best.ckpt) or train again")
     rate = (meta.get("layout") or {}).get("rate_hz") or meta.get("rate_hz")
     model.trained_rate_hz = None if not rate else float(rate)  # checked against the data by LearnedEstimator
+    span = (meta.get("layout") or {}).get("rate_range_hz")
+    model.trained_rate_range = None if not span else (float(span[0]), float(span[1]))
     model.eval()
     return model
 

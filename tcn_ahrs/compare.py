@@ -271,7 +271,7 @@ def _timed(e):
 COMPARE_KEYS = {"plugins", "on_calibrated", "methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_data", "tune_root", "tune_max_seconds_per_recording",
                 "tune_lead_seconds", "tune_recordings", "tune_max_batch", "ckpts", "ablation_ckpts", "out", "plots",
                 "trajectories", "align", "device", "threads", "verbose", "reanchor"}
-BENCHMARK_KEYS = COMPARE_KEYS | {"mode", "ckpt", "ckpt_label", "speed", "quick", "transfer"}  # speed/quick: speed mode; transfer: transfer mode
+BENCHMARK_KEYS = COMPARE_KEYS | {"mode", "ckpt", "ckpt_label", "speed", "quick", "transfer", "lodo", "finetune"}  # speed/quick: speed mode; transfer, lodo, finetune: theirs
 
 
 def _plain(v):

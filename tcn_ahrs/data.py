@@ -14,6 +14,7 @@
 """
 from __future__ import annotations
 
+import math
 import warnings
 from typing import Dict, List, Mapping, Optional, Sequence
 
@@ -28,9 +29,11 @@ from .losses import trust_labels
 from .sequence import ImuSequence
 
 
-def sequence_tensors(seq: ImuSequence, axes: int, dtype=torch.float32) -> Dict[str, Tensor]:
+def sequence_tensors(seq: ImuSequence, axes: int, dtype=torch.float32, supervision: str = "gt") -> Dict[str, Tensor]:
     """One recording as tensors: imu (N, C), dt (N,), rot (N, 3, 3) ground truth (identity where
-    invalid), valid (N,) bool. ``axes`` 6 drops the magnetometer; 9 requires one."""
+    invalid), valid (N,) bool, trust_label (N, 2) from the ground truth. ``axes`` 6 drops the
+    magnetometer; 9 requires one. ``supervision="self"``: no ground truth is read; every sample
+    is valid and trust_label (N, 3) holds :func:`~tcn_ahrs.losses.self_labels` (acc, mag, rest)."""
     if axes == 9 and not seq.has_mag:
         raise ValueError(f"{seq.source}: field 'mag': the 9-axis model needs a magnetometer but "
                          f"recording {seq.name!r} has none (use a 6-axis model: model=ahrs6 / data.axes=6)")
@@ -44,6 +47,12 @@ def sequence_tensors(seq: ImuSequence, axes: int, dtype=torch.float32) -> Dict[s
         valid = np.zeros(n, dtype=bool)
         rot = torch.eye(3, dtype=torch.float64).expand(n, 3, 3)
     imu_t = torch.as_tensor(imu, dtype=dtype)
+    if supervision == "self":
+        from .losses import self_labels
+
+        dt_t = torch.as_tensor(seq.dt, dtype=torch.float64)
+        return {"imu": imu_t, "dt": dt_t.to(dtype), "rot": torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous(),
+                "valid": torch.ones(n, dtype=torch.bool), "trust_label": self_labels(imu_t, dt_t)}
     valid_t = torch.as_tensor(valid)
     return {
         "imu": imu_t,
@@ -58,14 +67,17 @@ def sequence_tensors(seq: ImuSequence, axes: int, dtype=torch.float32) -> Dict[s
 class SequenceStore:
     """Recordings concatenated into flat tensors; ``gather(starts, length)`` -> batch of windows."""
 
-    def __init__(self, seqs: Sequence[ImuSequence], axes: int):
+    def __init__(self, seqs: Sequence[ImuSequence], axes: int, supervision: str = "gt"):
         if not seqs:
             raise ValueError("SequenceStore: no recordings (is the split empty? check data.root and the lists)")
-        parts = [sequence_tensors(s, axes) for s in seqs]
+        parts = [sequence_tensors(s, axes, supervision=supervision) for s in seqs]
         self.names = [s.name for s in seqs]
         self.lengths = [int(p["imu"].shape[0]) for p in parts]
         self.offsets = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)
         self.tensors = {k: torch.cat([p[k] for p in parts], 0) for k in parts[0]}
+        # time since each recording's start (float64: resampled windows interpolate in it)
+        self.time = torch.cat([torch.cumsum(p["dt"].double(), 0) for p in parts], 0)
+        self.rates = torch.as_tensor([float(s.rate) for s in seqs], dtype=torch.float64)
         self.axes = axes
         self._device = torch.device("cpu")
 
@@ -73,6 +85,7 @@ class SequenceStore:
         device = torch.device(device)
         if device != self._device:
             self.tensors = {k: v.to(device) for k, v in self.tensors.items()}
+            self.time, self.rates = self.time.to(device), self.rates.to(device)
             self._device = device
         return self
 
@@ -80,6 +93,51 @@ class SequenceStore:
         """starts (B,) -> dict of (B, length, ...) windows, on the store's device."""
         idx = starts.to(self._device).long()[:, None] + torch.arange(length, device=self._device)
         return {k: v[idx] for k, v in self.tensors.items()}
+
+    def gather_resampled(self, starts: Tensor, length: int, rate_hz: Sequence[float], jitter: float = 0.0,
+                         generator: Optional[torch.Generator] = None) -> Dict[str, Tensor]:
+        """Windows of ``length`` samples resampled to a random rate each, log-uniform in
+        ``rate_hz`` = (low, high) Hz, as if another device had recorded the motion: the readings
+        are interpolated linearly, the ground truth along the geodesic (slerp), the trust labels
+        taken from the nearest sample, validity from both neighbours; ``dt`` is the step between
+        the interpolated times (float64 inside). ``jitter`` (< 0.5) moves every sample after the
+        first by up to ±jitter/2 of a step: irregular sampling. A window whose rate would need
+        more samples than its recording has left is sampled as slowly as the recording allows.
+        Returns what :meth:`gather` returns, plus ``rate`` (B,) Hz."""
+        dev = self._device
+        starts = starts.to(dev).long()
+        b = starts.shape[0]
+        rec = torch.searchsorted(torch.as_tensor(self.offsets, device=dev), starts, right=True) - 1
+        end = self.recording_end(starts)
+        lo, hi = math.log(float(rate_hz[0])), math.log(float(rate_hz[1]))
+        u = torch.rand(b, generator=generator, dtype=torch.float64).to(dev)
+        rate = torch.exp(lo + (hi - lo) * u)
+        rho = self.rates[rec] / rate  # native samples per output sample
+        rho = torch.minimum(rho, (end - starts - 2).double() / max(length - 1, 1))
+        rate = self.rates[rec] / rho
+        k = torch.arange(length, dtype=torch.float64, device=dev).expand(b, length)
+        if jitter > 0.0:
+            shift = (torch.rand(b, length, generator=generator, dtype=torch.float64).to(dev) - 0.5) * float(jitter)
+            shift[:, 0] = 0.0
+            k = k + shift
+        f = starts[:, None].double() + rho[:, None] * k
+        i0 = torch.minimum(f.floor().long(), (end - 2)[:, None])
+        a = (f - i0.double()).clamp(0.0, 1.0)
+        i1 = i0 + 1
+        t = self.tensors
+        imu = t["imu"]
+        a_imu = a.to(imu.dtype)[..., None]
+        out = {"imu": (1.0 - a_imu) * imu[i0] + a_imu * imu[i1]}
+        tt = (1.0 - a) * self.time[i0] + a * self.time[i1]
+        dt = torch.diff(tt, dim=1)
+        out["dt"] = torch.cat([dt[:, :1], dt], 1).to(t["dt"].dtype)
+        r0, r1 = t["rot"][i0].double(), t["rot"][i1].double()
+        rel = so3.log(r0.transpose(-1, -2) @ r1)
+        out["rot"] = (r0 @ so3.exp(rel * a[..., None])).to(t["rot"].dtype)
+        out["valid"] = t["valid"][i0] & t["valid"][i1]
+        out["trust_label"] = torch.where((a < 0.5)[..., None], t["trust_label"][i0], t["trust_label"][i1])
+        out["rate"] = rate
+        return out
 
     def recording_end(self, flat_index: Tensor) -> Tensor:
         """(B,) flat indices -> (B,) one past the last flat index of their recordings."""
@@ -112,6 +170,19 @@ def window_starts(store: SequenceStore, window: int, stride: int, margin: int = 
     return torch.as_tensor(starts, dtype=torch.long)
 
 
+def balanced_starts(store: SequenceStore, starts: Tensor, seed: int = 0) -> Tensor:
+    """As many window starts from every dataset part (recordings named ``<part>/<name>``,
+    :func:`tcn_ahrs.datasets.data_parts`) as the parts have on average: a part with fewer is
+    repeated, one with more is subsampled (fixed seed), so no dataset dominates an epoch."""
+    part_of = np.array([n.split("/", 1)[0] if "/" in n else "" for n in store.names])
+    rec = np.searchsorted(store.offsets, starts.numpy(), side="right") - 1
+    groups = {p: starts.numpy()[part_of[rec] == p] for p in dict.fromkeys(part_of[rec])}
+    target = int(round(np.mean([len(g) for g in groups.values()])))
+    rng = np.random.default_rng(seed)
+    out = [rng.choice(g, target, replace=len(g) < target) for g in groups.values() if len(g)]
+    return torch.as_tensor(np.sort(np.concatenate(out)), dtype=torch.long)
+
+
 def input_statistics(seqs: Sequence[ImuSequence], axes: int) -> tuple:
     """Per-channel (mean, std) (C,) float32 over all samples of the training recordings."""
     x = np.concatenate([np.concatenate([s.gyro, s.accel] + ([s.mag] if axes == 9 else []), 1) for s in seqs], 0)
@@ -129,6 +200,36 @@ def augment(imu: Tensor, noise_std: Mapping[str, float], generator: Optional[tor
         return imu
     noise = torch.randn(imu.shape, generator=generator, dtype=imu.dtype, device=imu.device)
     return imu + noise * std_t
+
+
+def augment_sensor(w: Dict[str, Tensor], rotate: bool = False, gyro_bias: float = 0.0, scale: float = 0.0,
+                   generator: Optional[torch.Generator] = None) -> Dict[str, Tensor]:
+    """Another sensor's errors on a batch of windows (what :meth:`SequenceStore.gather`
+    returns): ``rotate`` mounts each window's sensor in a uniformly random orientation (every
+    reading turned by R, the ground truth ``nav_from_body`` by R^T, so the motion is the same);
+    ``gyro_bias`` (rad/s) adds a constant gyro offset per window (std); ``scale`` a per-axis
+    gyro and accelerometer scale error 1 + N(0, scale²). The trust labels stay valid: a rotation
+    or a scale does not move the specific force's direction against the true up, and the
+    magnetometer is only rotated (no hard or soft iron: that would change its labels)."""
+    imu, b = w["imu"], w["imu"].shape[0]
+    out = dict(w)
+    if rotate:
+        q = torch.randn(b, 4, generator=generator, dtype=torch.float64)
+        r = so3.quat_to_matrix(q / q.norm(dim=-1, keepdim=True)).to(imu.device)  # sensor_from_body
+        parts = [torch.einsum("bij,bnj->bni", r, imu[..., i:i + 3].double()) for i in range(0, imu.shape[-1], 3)]
+        imu = torch.cat(parts, -1).to(w["imu"].dtype)
+        out["rot"] = (w["rot"].double() @ r.transpose(-1, -2)[:, None]).to(w["rot"].dtype)
+    if gyro_bias > 0.0 or scale > 0.0:
+        g = imu[..., 0:3]
+        if scale > 0.0:
+            s = 1.0 + scale * torch.randn(b, 1, 6, generator=generator, dtype=imu.dtype).to(imu.device)
+            g = g * s[..., 0:3]
+            imu = torch.cat([g, imu[..., 3:6] * s[..., 3:6], imu[..., 6:]], -1)
+        if gyro_bias > 0.0:
+            off = gyro_bias * torch.randn(b, 1, 3, generator=generator, dtype=imu.dtype).to(imu.device)
+            imu = torch.cat([imu[..., 0:3] + off, imu[..., 3:]], -1)
+    out["imu"] = imu
+    return out
 
 
 class _Indices(Dataset):
@@ -156,8 +257,13 @@ class AHRSDataModule(pl.LightningDataModule):
 
     def __init__(self, data_cfg: Optional[Mapping], axes: int, window: int, stride: int,
                  batch_size: int, train_seqs: Optional[List[ImuSequence]] = None,
-                 val_seqs: Optional[List[ImuSequence]] = None, margin: int = 0):
+                 val_seqs: Optional[List[ImuSequence]] = None, margin: int = 0, balance: bool = False,
+                 supervision: str = "gt"):
         super().__init__()
+        if supervision not in ("gt", "self"):
+            raise ValueError(f"train.supervision: expected 'gt' (motion capture) or 'self' (none needed), got {supervision!r}")
+        self.supervision = supervision
+        self.balance = bool(balance)
         self.margin = int(margin)
         self.data_cfg = data_cfg
         self.axes = int(axes)
@@ -183,6 +289,8 @@ class AHRSDataModule(pl.LightningDataModule):
             if self.val_seqs is None:
                 self.val_seqs = load_split(self.data_cfg, "val")
         keep = [s for s in self.train_seqs if s.has_gt and s.quat_valid.any()]
+        if self.supervision == "self":
+            keep = list(self.train_seqs)  # no ground truth needed
         if not keep:
             dc = self.data_cfg or {}
             name, root = dc.get("name", "?"), dc.get("root", "?")
@@ -209,8 +317,10 @@ class AHRSDataModule(pl.LightningDataModule):
             warnings.warn(f"training window {self.window} is longer than every training recording "
                           f"(longest {longest}); using {longest}")
             self.window = longest
-        self.train_store = SequenceStore(keep, self.axes)
+        self.train_store = SequenceStore(keep, self.axes, self.supervision)
         self.starts = window_starts(self.train_store, self.window, self.stride, self.margin)
+        if self.balance:
+            self.starts = balanced_starts(self.train_store, self.starts)
         vals = [s for s in self.val_seqs if s.has_gt and s.quat_valid.sum() > 1]
         self.val_store = SequenceStore(vals, self.axes) if vals else None
 

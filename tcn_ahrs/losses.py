@@ -17,6 +17,7 @@ floor under the residuals a well-trained model drives toward.
 """
 from __future__ import annotations
 
+import math
 from typing import Sequence
 
 import torch
@@ -156,3 +157,71 @@ def trust_loss(logits: Tensor, labels: Tensor, valid: Tensor) -> Tensor:
     v = valid.to(logits.dtype)
     bce = F.binary_cross_entropy_with_logits(logits, labels.to(logits.dtype), reduction="none")
     return (bce * v).sum() / v.sum().clamp_min(1.0)
+
+
+def self_labels(imu: Tensor, dt: Tensor, horizon_s: float = 0.2, acc_deg: float = 3.0, acc_norm: float = 0.03,
+                mag_deg: float = 3.0, mag_norm: float = 0.1, rest_s: float = 0.5,
+                rest_acc: float = 0.1, rest_gyro: float = 0.005) -> Tensor:
+    """Targets for self-supervised training (no motion capture): what the sensors say about
+    themselves. imu (N, C) raw, body frame (C = 6 or 9), dt (N,) s. Returns (N, 3) in {0., 1.}:
+
+    * column 0, the accelerometer is trustworthy: its norm is within ``acc_norm`` (relative) of
+      g, and its direction ``horizon_s`` earlier, carried to now by the gyro's rotation, lies
+      within ``acc_deg`` of its direction now (gravity is fixed in the navigation frame; a
+      short horizon keeps the gyro's bias out: 0.08 rad/s over 0.2 s is 0.9°);
+    * column 1, the magnetometer is (always 1 without one): its norm within ``mag_norm`` of the
+      recording's median and its dip (angle to the specific force, on samples of column 0)
+      within ``mag_deg`` of the median dip (a fixed field, a fixed dip);
+    * column 2, at rest: the gyro's and the accelerometer's standard deviations over ``rest_s``
+      below ``rest_gyro`` rad/s and ``rest_acc`` m/s² (the true rate is then zero, so the
+      gyro reads its bias)."""
+    from .conventions import GRAVITY
+
+    x = imu.to(torch.float64)
+    d = dt.to(torch.float64)
+    n = x.shape[0]
+    rate = 1.0 / float(d[1:].median()) if n > 1 else 1.0
+    acc, gyro = x[:, 3:6], x[:, 0:3]
+    a_norm = acc.norm(dim=-1).clamp_min(1e-9)
+    k = max(1, int(round(horizon_s * rate)))
+    rot = so3.integrate(torch.eye(3, dtype=torch.float64), gyro, d)  # (N, 3, 3) world_from_body, up to a constant
+    acc_ok = (a_norm / GRAVITY - 1.0).abs() < acc_norm
+    if n > k:
+        # the direction k samples ago, carried into today's body frame: R_t^T R_{t-k} a_{t-k}
+        prev = (rot[k:].transpose(-1, -2) @ (rot[:-k] @ acc[:-k].unsqueeze(-1))).squeeze(-1)
+        cos = (prev * acc[k:]).sum(-1) / (prev.norm(dim=-1).clamp_min(1e-9) * a_norm[k:])
+        agree = torch.zeros(n, dtype=torch.bool)
+        agree[k:] = cos > math.cos(math.radians(acc_deg))
+        acc_ok = acc_ok & agree
+    else:
+        acc_ok = torch.zeros(n, dtype=torch.bool)
+    mag_ok = torch.ones(n, dtype=torch.bool)
+    if x.shape[1] >= 9:
+        m = x[:, 6:9]
+        m_norm = m.norm(dim=-1).clamp_min(1e-9)
+        dip = torch.acos(((m * acc).sum(-1) / (m_norm * a_norm)).clamp(-1.0, 1.0))
+        ref = dip[acc_ok].median() if bool(acc_ok.any()) else dip.median()
+        mag_ok = ((m_norm / m_norm.median() - 1.0).abs() < mag_norm) & ((dip - ref).abs() < math.radians(mag_deg))
+    w = max(3, int(rest_s * rate))
+    rest = torch.zeros(n, dtype=torch.bool)
+    if n >= w:
+        def rolling_std(v: Tensor) -> Tensor:
+            c = torch.cat([torch.zeros(1, 3, dtype=v.dtype), torch.cumsum(v, 0)])
+            c2 = torch.cat([torch.zeros(1, 3, dtype=v.dtype), torch.cumsum(v * v, 0)])
+            mean = (c[w:] - c[:-w]) / w
+            return ((c2[w:] - c2[:-w]) / w - mean ** 2).clamp_min(0.0).sum(-1).sqrt()
+
+        still = (rolling_std(gyro) < rest_gyro) & (rolling_std(acc) < rest_acc)  # window ending at sample i + w - 1
+        rest[w - 1:] = still
+    return torch.stack([acc_ok, mag_ok, rest], -1).to(torch.float32)
+
+
+def rest_rate_loss(omega: Tensor, rest: Tensor, huber_delta: float = 0.005) -> Tensor:
+    """Self-supervised gyro loss: at rest the true rate is zero, so the corrected rate omega
+    (B, N, 3) rad/s should be (Huber, δ rad/s, divided by δ as :func:`increment_loss`) on the
+    samples where ``rest`` (B, N) holds; 0 when none is at rest."""
+    m = rest.bool()
+    if not bool(m.any()):
+        return omega.new_zeros(())
+    e = omega[m]
+    return F.smooth_l1_loss(e, torch.zeros_like(e), beta=huber_delta, reduction="mean") / huber_delta

@@ -22,10 +22,10 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from . import so3
-from .checkpoint import (AtomicCheckpointIO, CheckpointError, check_layout, layout_meta,
+from .checkpoint import (AtomicCheckpointIO, CheckpointError, check_layout, checkpoint_meta, layout_meta,
                          load_checkpoint)
-from .data import AHRSDataModule, augment
-from .losses import attitude_loss, increment_loss, trust_loss
+from .data import AHRSDataModule, augment, augment_sensor
+from .losses import attitude_loss, increment_loss, rest_rate_loss, trust_loss
 from .model.ahrs import LearnedAHRS
 from .cli import output_dir
 from .validate import check_keys, check_number, set_threads
@@ -33,7 +33,8 @@ from .validate import check_keys, check_number, set_threads
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
               "attitude_delta", "ema_decay", "init_gyro_bias", "tune_backbone", "all_recordings",
-              "select_knobs"}
+              "select_knobs", "augment", "balance", "supervision"}
+AUGMENT_KEYS = {"rate_hz", "jitter", "rotate", "gyro_bias", "scale"}
 
 
 class AHRSModule(pl.LightningModule):
@@ -45,7 +46,7 @@ class AHRSModule(pl.LightningModule):
                  loss_js: List[int] = (16, 32), huber_delta: float = 0.005,
                  noise: Optional[Dict[str, float]] = None, data_name: str = "",
                  rate_hz: Optional[float] = None, stream_chunks: int = 8, attitude_delta: float = 0.01,
-                 ema_decay: float = 0.0):
+                 ema_decay: float = 0.0, augment: Optional[Dict[str, Any]] = None, supervision: str = "gt"):
         super().__init__()
         self.save_hyperparameters()
         self.model = LearnedAHRS.from_config(model_cfg, axes=axes)
@@ -60,6 +61,7 @@ class AHRSModule(pl.LightningModule):
             self.reset_ema()
         self.loss_js = [int(j) for j in loss_js]
         self.noise = dict(noise or {})
+        self.augment = dict(augment or {})  # train.augment: rate resampling and sensor errors
         self._stream: Optional[Dict[str, torch.Tensor]] = None  # closed-loop TBPTT state
 
     @torch.no_grad()
@@ -91,9 +93,11 @@ class AHRSModule(pl.LightningModule):
         (starts,) = batch
         if self.model.closed is not None:
             return self._closed_loop_step(starts)
-        w = self._store("train_store").gather(starts, self.trainer.datamodule.window)
+        w = self._windows(starts)
         imu = augment(w["imu"], self.noise)
         out = self.model(imu, w["dt"], w["rot"][:, 0])
+        if self.hparams.get("supervision") == "self":
+            return self._self_supervised_loss(out, w, starts.shape[0])
         loss = increment_loss(out["omega"], w["dt"], w["rot"], w["valid"], self.loss_js,
                               self.hparams.huber_delta)
         if self.model.backbone is not None:  # the trust logits: separate network, own loss
@@ -103,6 +107,33 @@ class AHRSModule(pl.LightningModule):
         self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True,
                  batch_size=starts.shape[0], sync_dist=True)
         return loss
+
+    def _self_supervised_loss(self, out: Dict[str, torch.Tensor], w: Dict[str, torch.Tensor], b: int):
+        """No motion capture (``train.supervision=self``): the corrected rate is zero at rest
+        (:func:`~tcn_ahrs.losses.rest_rate_loss`), the trust logits learn the sensors' own
+        consistency (:func:`~tcn_ahrs.losses.self_labels`)."""
+        label, valid = w["trust_label"], w["valid"]
+        loss = rest_rate_loss(out["omega"], label[..., 2] > 0.5, self.hparams.huber_delta)
+        if "acc_trust_logit" in out:
+            loss = loss + trust_loss(out["acc_trust_logit"], label[..., 0], valid)
+        if "mag_trust_logit" in out:
+            loss = loss + trust_loss(out["mag_trust_logit"], label[..., 1], valid)
+        self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=b, sync_dist=True)
+        return loss
+
+    def _windows(self, starts: torch.Tensor) -> Dict[str, torch.Tensor]:
+        """The batch's training windows: at a random rate each when ``augment.rate_hz`` is set
+        (:meth:`~tcn_ahrs.data.SequenceStore.gather_resampled`), then another sensor's errors
+        (:func:`~tcn_ahrs.data.augment_sensor`)."""
+        store, a = self._store("train_store"), self.augment
+        window = self.trainer.datamodule.window
+        if a.get("rate_hz"):
+            w = store.gather_resampled(starts, window, a["rate_hz"], float(a.get("jitter") or 0.0))
+        else:
+            w = store.gather(starts, window)
+        if a.get("rotate") or a.get("gyro_bias") or a.get("scale"):
+            w = augment_sensor(w, bool(a.get("rotate")), float(a.get("gyro_bias") or 0.0), float(a.get("scale") or 0.0))
+        return w
 
     def _closed_loop_step(self, starts: torch.Tensor):
         """Truncated backpropagation through the closed loop over chained chunks.
@@ -215,7 +246,7 @@ class AHRSModule(pl.LightningModule):
         cfg = dict(self.hparams.model_cfg)
         cfg["axes"] = self.model.axes
         checkpoint["tcn_ahrs"] = layout_meta(cfg, self.model.axes, self.hparams.data_name,
-                                             self.hparams.get("rate_hz"))
+                                             self.hparams.get("rate_hz"), self.augment.get("rate_hz"))
 
 
 # ====================================================================== helpers
@@ -284,6 +315,16 @@ def check_train_values(train: Mapping) -> None:
             check_number(train.get(k), f"train.{k}", kind, low, low_ok, high)
     for k, v in (train.get("noise") or {}).items():
         check_number(v, f"train.noise.{k}", float, 0.0)
+    aug = train.get("augment") or {}
+    check_keys(aug, AUGMENT_KEYS, "train.augment")
+    for k in ("jitter", "gyro_bias", "scale"):
+        if aug.get(k) is not None:
+            check_number(aug.get(k), f"train.augment.{k}", float, 0.0, True, 0.49 if k == "jitter" else None)
+    span = aug.get("rate_hz")
+    if span is not None:
+        span = list(span)
+        if len(span) != 2 or not (0.0 < float(span[0]) <= float(span[1])):
+            raise ValueError(f"train.augment.rate_hz: expected [low, high] Hz with 0 < low <= high, got {span}")
     if train.get("monitor") is not None and str(train.get("monitor")) not in MONITORS:
         import difflib
 
@@ -503,6 +544,19 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     axes = model_axes(cfg)
     model_cfg = _plain(cfg.model)
     model_cfg["axes"] = axes
+    init_model = None
+    if cfg.get("init"):
+        # fine-tuning: the architecture, knobs and weights are the checkpoint's; the model group is not used
+        from .checkpoint import model_from_checkpoint
+
+        init_model = model_from_checkpoint(str(cfg.init))
+        check_layout(load_checkpoint(str(cfg.init)), axes, str(cfg.init))
+        model_cfg = dict(checkpoint_meta(load_checkpoint(str(cfg.init)), str(cfg.init))["model"])
+        model_cfg["axes"] = axes
+        if cfg.train.get("init_gyro_bias", True) and model_cfg.get("residual") is not None:
+            # the bias state starts at this device's estimated bias (general models start at zero)
+            model_cfg["residual"] = {**dict(model_cfg["residual"]), "bias_prior": 1.0}
+        print(f"fine-tuning from {cfg.init} ({model_cfg.get('variant')}, {init_model.num_parameters():,} parameters)")
     probe = LearnedAHRS.from_config(model_cfg)  # fail early on a bad model config
     # the closed loop trains on chained chunks whose networks see receptive_field - 1 samples before
     margin = probe.receptive_field - 1 if probe.closed is not None else 0
@@ -513,10 +567,17 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         from .datasets import load_split
 
         train_seqs, val_seqs = load_split(cfg.data, "trainval"), []
+    supervision = str(cfg.train.get("supervision") or "gt")
+    if supervision == "self" and (probe.backbone is None or init_model is None):
+        raise ValueError("train.supervision=self: fine-tunes a residual model without ground truth; set "
+                         "init=<checkpoint of a residual model> (e.g. checkpoints/general9.ckpt)")
     dm = AHRSDataModule(cfg.data, axes, cfg.train.window, cfg.train.stride, cfg.train.batch_size,
-                        train_seqs, val_seqs, margin=margin)
+                        train_seqs, val_seqs, margin=margin, balance=bool(cfg.train.get("balance")),
+                        supervision=supervision)
     dm.prepare()
-    if probe.backbone is not None and cfg.train.get("tune_backbone", True):
+    if supervision == "self":
+        dm.val_seqs, dm.val_store = [], None  # nothing to validate against without ground truth
+    if probe.backbone is not None and cfg.train.get("tune_backbone", True) and supervision == "gt":
         from .tuning import tune_backbone
 
         # the backbone's knobs, chosen on the training recordings before any network trains
@@ -534,11 +595,18 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
                         stream_chunks=int(cfg.train.get("stream_chunks") or 8),
                         attitude_delta=float(cfg.train.get("attitude_delta") or 0.01),
                         ema_decay=float(cfg.train.get("ema_decay") or 0.0),
+                        augment=_plain(cfg.train.get("augment") or {}), supervision=supervision,
                         data_name=str(cfg.data.name),
                         # the rate the model learned at (its TCN's time scale), for deployment
                         rate_hz=float(np.median([s.rate for s in dm.train_seqs])))
-    mean, std = dm.statistics()
-    module.model.calibration.set_input_stats(mean, std)
+    if init_model is not None:
+        state = init_model.state_dict()
+        if module.model.backbone is not None:  # the knobs just tuned (if any) stay this run's
+            state = {k: v for k, v in state.items() if not k.startswith("backbone.")}
+        module.model.load_state_dict(state, strict=False)
+    else:
+        mean, std = dm.statistics()
+        module.model.calibration.set_input_stats(mean, std)
     if module.model.closed is not None:
         module.model.closed.set_rate(module.hparams.rate_hz)
         bias = rest_gyro_mean(module.model, dm.train_store) if cfg.train.get("init_gyro_bias", True) else None

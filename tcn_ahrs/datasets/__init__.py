@@ -15,6 +15,11 @@ Data configuration (``conf/data/<name>.yaml``; ``data/README.md`` documents each
     test: [MH_02_easy, ...]           # test recordings (absent ones are skipped with a warning)
     train_part: {seconds: 80}         # or {fraction: 0.7}
     axes: 9                           # 6 drops the magnetometer
+
+Several datasets as one (``conf/data/general6.yaml``): ``parts`` {dataset: its data config} and
+``leave_out`` (a part's name or a list, for leave-one-dataset-out); every split is the union of
+the parts' splits, recordings named ``<part>/<recording>``, each part read with the top-level
+``axes``.
 """
 from __future__ import annotations
 
@@ -153,6 +158,8 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
     split = split or _get(data_cfg, "split", "train")
     if split not in SPLITS:
         raise DataError("data config", "split", f"expected one of {list(SPLITS)}, got {split!r}")
+    if _get(data_cfg, "parts"):
+        return _load_parts(data_cfg, split)
     if name == "simulated":
         from . import simulate  # written separately; imported lazily
 
@@ -203,6 +210,43 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
         seqs.append(seq)
     if int(_get(data_cfg, "axes", 9)) == 6:
         seqs = [s.without_mag() if s.has_mag else s for s in seqs]
+    return seqs
+
+
+def data_parts(data_cfg: Mapping) -> Dict[str, Dict[str, Any]]:
+    """{part: its data config} of a multi-dataset config (``parts`` minus ``leave_out``), each
+    with the top-level ``axes``; a single dataset: {its name: its config}."""
+    parts = _plain(_get(data_cfg, "parts")) or {}
+    if not parts:
+        return {str(_get(data_cfg, "name")): dict(_plain(data_cfg))}
+    if not isinstance(parts, Mapping):
+        raise DataError("data config", "parts", f"expected a mapping {{dataset: data config}}, got {type(parts).__name__}")
+    leave = _plain(_get(data_cfg, "leave_out")) or []
+    leave = [leave] if isinstance(leave, str) else [str(x) for x in leave]
+    unknown = [x for x in leave if x not in parts]
+    if unknown:
+        raise DataError("data config", "leave_out", f"expected part names among {sorted(parts)}, got {unknown}")
+    axes = int(_get(data_cfg, "axes", 9))
+    return {str(k): {**dict(v), "axes": axes} for k, v in parts.items() if k not in leave}
+
+
+def _load_parts(data_cfg: Mapping, split: str) -> List[ImuSequence]:
+    """The union of the parts' ``split`` (:func:`data_parts`), recordings named ``<part>/<name>``.
+    A part whose data is absent is skipped with a warning (its folder missing)."""
+    import copy
+
+    seqs: List[ImuSequence] = []
+    for part, cfg in data_parts(data_cfg).items():
+        if part != "simulated" and cfg.get("name") != "simulated":
+            try:
+                resolve_root(cfg)
+            except DataError as e:
+                warnings.warn(f"{_get(data_cfg, 'name', 'data')}: part {part!r} skipped: {e}", stacklevel=2)
+                continue
+        for s in load_split(cfg, split):
+            s = copy.copy(s)  # checked once, at its loader
+            s.name = f"{part}/{s.name}"
+            seqs.append(s)
     return seqs
 
 

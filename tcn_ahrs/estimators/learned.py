@@ -88,14 +88,28 @@ class LearnedEstimator:
     def axes(self) -> int:
         return self.model.axes
 
+    def trained_rates(self) -> str:
+        span = getattr(self.model, "trained_rate_range", None)
+        if span:
+            return f"{span[0]:.4g}-{span[1]:.4g} Hz"
+        return f"{getattr(self.model, 'trained_rate_hz', None) or float('nan'):.4g} Hz"
+
+    def other_device(self, rate_hz: float) -> bool:
+        """Whether a recording at ``rate_hz`` lies outside the rates the model was trained at:
+        ±5 % of its training rate, or its trained range (rate augmentation) ±5 %."""
+        span = getattr(self.model, "trained_rate_range", None)
+        if span:
+            return not (0.95 * span[0] <= rate_hz <= 1.05 * span[1])
+        trained = getattr(self.model, "trained_rate_hz", None)
+        return bool(trained) and abs(rate_hz / trained - 1.0) > 0.05
+
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
             init_index: int = 0) -> EstimatorOutput:
-        trained = getattr(self.model, "trained_rate_hz", None)
-        if trained and abs(float(seq.rate) / trained - 1.0) > 0.05:
+        if self.other_device(float(seq.rate)):
             if getattr(self.model, "backbone", None) is not None and self.other_rate == "backbone":
                 if not self.fell_back:  # once per model: the list names every recording
                     warnings.warn(f"{self.name}: recording {seq.name!r} is at {seq.rate:.4g} Hz, the model was "
-                                  f"trained at {trained:.4g} Hz (another device): such recordings run as the "
+                                  f"trained at {self.trained_rates()} (another device): such recordings run as the "
                                   "backbone with VQF's default parameters, nothing learned applied "
                                   "(other_rate=model runs the model anyway)", stacklevel=2)
                 self.fell_back.append(seq.name)
@@ -104,8 +118,8 @@ class LearnedEstimator:
                 return out
             else:
                 warnings.warn(f"{self.name}: recording {seq.name!r} is at {seq.rate:.4g} Hz but the model was "
-                              f"trained at {trained:.4g} Hz: its networks' time scale and rest window assume "
-                              f"{trained:.4g} Hz (resample the recording, or train at its rate)", stacklevel=2)
+                              f"trained at {self.trained_rates()}: its networks' time scale and rest window assume "
+                              "those rates (resample the recording, or train at its rate)", stacklevel=2)
         imu = model_input(self.model, seq, self.device, f"model {self.ckpt_path or ''}")
         dt = torch.as_tensor(seq.dt, dtype=imu.dtype, device=self.device)[None]
         start = check_number(init_index, "init_index", int, 0, high=len(seq))

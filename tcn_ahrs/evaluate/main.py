@@ -25,7 +25,15 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
     set_threads(cfg.get("threads"))
     if not cfg.get("ckpt"):
-        raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
+        # your own recordings without a model of their own: the general model for their axes
+        general = Path(__file__).resolve().parents[2] / "checkpoints" / f"general{int(cfg.data.get('axes', 9))}.ckpt"
+        if not general.is_file():
+            raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
+        from omegaconf import open_dict
+
+        with open_dict(cfg):
+            cfg.ckpt = str(general)
+        print(f"note: no ckpt given: the general model {general} (any IMU, 50-1000 Hz)")
     # run_dir= (a training run): its eval/ subfolder, never the run's own files
     explicit = cfg.get("out") or (str(Path(str(cfg.run_dir)) / "eval") if cfg.get("run_dir") else None)
     out = str(output_dir(explicit, Path("runs") / "evaluate"))

@@ -1,0 +1,153 @@
+"""Does fine-tuning on a few of one's own recordings help? (``python scripts/benchmark.py finetune``)
+
+For each dataset, the general model that never saw it (the leave-one-dataset-out run,
+``runs/lodo/<dataset>``) plays the user's starting point; the dataset plays the user's device:
+
+* ``k`` of its recordings (the first ``k`` of its first cross-validation fold) are the user's own;
+* fine-tuned twice from the general model (``experiment=finetune``): with their ground truth
+  (``train.supervision=gt``: backbone knobs, bias, networks, inference knobs on the later parts)
+  and without (``train.supervision=self``: the whole recordings, bias and networks from the
+  sensors' own consistency);
+* scored on the dataset's other training recordings, whole (which chose nothing), beside the
+  general model, the backbone and the classical filters.
+
+Output: ``finetune.json`` and ``finetune.md`` in ``out``; runs in ``finetune.runs/<dataset>_<mode>``
+(reused when finished).
+"""
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+from typing import Any, Dict, List, Mapping, Optional, Sequence
+
+from .evaluate.runner import evaluate, jsonable
+from .lodo import CONF, DATASETS
+from .transfer import METRICS
+
+BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick")
+MODES = ("gt", "self")
+
+
+def own_recordings(data_cfg: Mapping, k: int) -> List[str]:
+    """The user's k recordings: the first k of the dataset's first fold (else of its train list)."""
+    folds = list(data_cfg.get("folds") or [])
+    names = [str(r) for r in (folds[0] if folds else data_cfg.get("train") or [])]
+    return names[:k]
+
+
+def finetune_run(dataset: str, mode: str, init: Path, recordings: Sequence[str], run_dir: Path,
+                 overrides: Sequence[str] = ()) -> Path:
+    """Fine-tune ``init`` on ``recordings`` of ``dataset`` (6 axes); returns the checkpoint."""
+    ckpt = run_dir / "checkpoints" / "last.ckpt"
+    done = run_dir / ("knobs.json" if mode == "gt" else "done")
+    if done.is_file() and ckpt.is_file():
+        return ckpt
+    from hydra import compose, initialize_config_dir
+
+    from .train import train_main
+
+    recs = "[" + ",".join(f"'{r}'" for r in recordings) + "]"
+    args = ["experiment=finetune", f"init={init}", f"data={dataset}", "data.axes=6", f"data.train={recs}",
+            "data.fold=null", f"train.supervision={mode}", f"run_dir={run_dir}", "eval.enabled=false"]
+    if mode == "self":
+        args.append("train.all_recordings=true")  # nothing to validate without ground truth: whole recordings
+    args += list(overrides)
+    if ckpt.is_file():
+        args.append("resume=true")
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose("train", args)
+    print(f"finetune: {' '.join(args)}", flush=True)
+    train_main(cfg, overrides=list(args))
+    if mode == "self":
+        done.write_text("finished\n")
+    return ckpt
+
+
+def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: int = 2,
+             modes: Sequence[str] = MODES, overrides: Sequence[str] = (),
+             baselines: Sequence[str] = BASELINES, out: Optional[Path] = None) -> Dict[str, Any]:
+    from .datasets import load_split
+    from .estimators import registry
+    from .estimators.learned import LearnedEstimator
+
+    rows: Dict[str, Any] = {}
+    for name, cfg in data_cfgs.items():
+        init = Path(lodo_runs) / name / "checkpoints" / "last.ckpt"
+        if not init.is_file():
+            rows[name] = {"skipped": f"no general model trained without {name} at {init} (scripts/benchmark.py lodo)"}
+            continue
+        mine = own_recordings(cfg, k)
+        cfg = {**dict(cfg), "fold": None, "axes": 6}
+        seqs = [s for s in load_split(cfg, "trainval") if s.name not in mine and s.quat is not None and s.scored().any()]
+        ests = [LearnedEstimator(str(init), name="general")]
+        ckpts = {"general": str(init)}
+        for mode in modes:
+            ck = finetune_run(name, mode, init, mine, Path(runs) / f"{name}_{mode}", overrides)
+            ests.append(LearnedEstimator(str(ck), name=f"finetuned_{mode}"))
+            ckpts[f"finetuned_{mode}"] = str(ck)
+        for b in baselines:
+            try:
+                ests.append(registry.build(b, 6))
+            except Exception as e:  # noqa: BLE001 - a missing peer must not lose the row
+                warnings.warn(f"finetune: baseline {b!r} unavailable, skipped: {e}")
+        res = evaluate(ests, seqs, plots=False, trajectories=False, axes=6)
+        means = {e.name: {m: res["methods"][e.name]["mean"].get(m) for m in METRICS} for e in ests}
+        classical = {n: v for n, v in means.items() if n not in ckpts and v["aae_deg"] is not None}
+        best = min(classical, key=lambda n: classical[n]["aae_deg"])
+        rows[name] = {"own_recordings": mine, "scored": [s.name for s in seqs], "means": means, "best": best,
+                      "checkpoints": ckpts}
+        print(f"finetune {name}: " + ", ".join(f"{n} {means[n]['aae_deg']:.2f}/{means[n]['inclination_deg']:.2f}"
+                                               for n in list(ckpts) + [best]), flush=True)
+    result = {"finetune": rows, "k": int(k), "modes": list(modes), "overrides": list(overrides)}
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "finetune.json").write_text(json.dumps(jsonable(result), indent=1))
+        (out / "finetune.md").write_text(markdown(result))
+    return result
+
+
+def markdown(result: Mapping[str, Any]) -> str:
+    modes = list(result["modes"])
+    head = ["general (never saw it)"] + [f"fine-tuned ({'with ground truth' if m == 'gt' else 'self-supervised'})"
+                                         for m in modes] + ["backbone", "best classical"]
+    lines = ["| dataset (own / scored recordings) | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+
+    def pair(v):
+        return "–" if not v or v.get("aae_deg") is None else f"{v['aae_deg']:.2f} / {v['inclination_deg']:.2f}"
+
+    for name, r in result["finetune"].items():
+        if "skipped" in r:
+            lines.append(f"| {name} | {r['skipped']} |" + " |" * (len(head) - 1))
+            continue
+        m = r["means"]
+        cells = [pair(m["general"])] + [pair(m.get(f"finetuned_{x}")) for x in modes]
+        cells += [pair(next((v for n, v in m.items() if n.startswith("backbone")), None)),
+                  f"{r['best']} {pair(m[r['best']])}"]
+        lines.append(f"| {name} ({len(r['own_recordings'])} / {len(r['scored'])}) | " + " | ".join(cells) + " |")
+    lines.append("")
+    lines.append(f"Mean AAE / inclination in degrees (6 axes) over the dataset's other training recordings, whole; "
+                 f"the {result['k']} own recordings are the first of its first fold.")
+    return "\n".join(lines) + "\n"
+
+
+def finetune_main(cfg) -> Dict[str, Any]:
+    """``scripts/benchmark.py finetune``: the ``finetune`` section of ``conf/benchmark.yaml``."""
+    from omegaconf import OmegaConf
+
+    t = OmegaConf.to_container(cfg.get("finetune") or {}, resolve=True)
+    data_cfgs: Dict[str, Mapping] = {}
+    for d in list(t.get("datasets") or DATASETS):
+        c = OmegaConf.to_container(OmegaConf.load(CONF / "data" / f"{d}.yaml"), resolve=True)
+        if not Path(c["root"]).is_dir():
+            warnings.warn(f"finetune: {d} data not found at {c['root']}, skipped")
+            continue
+        data_cfgs[d] = c
+    out = Path(cfg.get("out") or "runs/benchmark/finetune")
+    res = finetune(data_cfgs, Path(t.get("lodo_runs") or "runs/lodo"), Path(t.get("runs") or "runs/finetune"),
+                   int(t.get("k") or 2), list(t.get("modes") or MODES), list(t.get("overrides") or []),
+                   list(t.get("baselines") or BASELINES), out)
+    print(markdown(res))
+    print(f"results in {out}")
+    return res
