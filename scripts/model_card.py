@@ -1,10 +1,13 @@
 """A shipped checkpoint's model card, generated from the runs' JSON.
 
     python scripts/model_card.py NAME CKPT CROSSVAL_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/NAME.md
+    python scripts/model_card.py general6 CKPT LODO_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/general6.md
 
 NAME: the experiment prefix (``broad9`` for ``experiment=broad9_res``); CROSSVAL_JSON: its nested
-folds (``scripts/crossval.py``); TRANSFER_JSON: the cross-dataset matrix (``scripts/benchmark.py
-transfer``); RELEASE_LOG: the release training's output (backbone knobs, bias prior, wall time).
+folds (``scripts/crossval.py``); LODO_JSON: for a general model, its recipe's leave-one-dataset-out
+table (``scripts/benchmark.py lodo``); TRANSFER_JSON: the cross-dataset matrix
+(``scripts/benchmark.py transfer``); RELEASE_LOG: the release training's output (backbone knobs,
+bias prior, wall time).
 """
 import hashlib
 import json
@@ -18,7 +21,74 @@ from nested_table import rows  # noqa: E402
 from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint  # noqa: E402
 
 
+def cost_lines(model, log=None):
+    """Parameters, footprint, FLOPs per sample and the training's wall time."""
+    from tcn_ahrs.bench.common import footprint
+
+    f = footprint(model)
+    out = [f"- **Cost**: {f['parameters']:,} parameters ({f['weight_bytes'] / 1024:.0f} KiB as float32); streaming state "
+           f"{f['state_floats']:,} numbers ({f['state_bytes'] / 1024:.0f} KiB: the networks' ring buffers and the filter); "
+           f"{f['flops_per_sample'] / 1e3:.1f} kFLOP per sample (the networks; the filter adds a few hundred)."]
+    if log and Path(log).is_file():
+        m = re.search(r"training took ([0-9.]+) s", Path(log).read_text(errors="replace"))
+        if m:
+            out.append(f"- **Training time**: {float(m.group(1)):.0f} s on this 2-core CPU (no GPU).")
+    return out
+
+
+def transfer_rows(row):
+    out = []
+    for d, c in row.items():
+        if not isinstance(c, dict) or "learned" not in c:
+            continue
+        l, b = c["learned"], c["best_metrics"] or {}
+        out.append(f"| {d} ({c.get('split')}, {len(c['recordings'])} rec.) | {l['aae_deg']:.2f} / {l['inclination_deg']:.2f} | "
+                   f"{c['best']} {b.get('aae_deg', float('nan')):.2f} | {c['best_inclination_deg']:.2f} | "
+                   f"{'yes' if c['never_worse'] else '**no**'} |")
+    return out
+
+
+def general(name, ckpt, lodo_json, tr_json, log=None):
+    """The card of a general model (``experiment=<name>_res``): no nested folds of one dataset;
+    its recipe's leave-one-dataset-out table instead."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from tcn_ahrs.lodo import markdown as lodo_markdown
+
+    meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)
+    model = model_from_checkpoint(ckpt)
+    res = meta["model"].get("residual", {})
+    knobs = {k: v for k, v in res.items() if k != "backbone"}
+    lo, hi = meta["layout"].get("rate_range_hz") or (None, None)
+    data = Path(ckpt).read_bytes()
+    out = [f"# `{Path(ckpt).name}` — model card\n",
+           f"- **Model**: one {meta['layout']['axes']}-axis model for any IMU: learned residuals on the VQF-grade backbone "
+           f"(`experiment={name}_res`), two causal TCNs (receptive field {model.receptive_field} samples).",
+           f"- **Rates**: trained on windows resampled to random rates {lo:g}–{hi:g} Hz (irregular steps too), so any "
+           "recording in that range runs as the model, without a warning and without resampling; outside it, as the backbone.",
+           f"- **Data**: the training parts of `{meta.get('data')}` (every dataset the same number of windows per epoch), "
+           "each window in a random mounting orientation with a random gyro offset and scale error; the later parts "
+           "(validation) chose the inference knobs; the fixed schedule's last epoch ships.",
+           f"- **Backbone knobs** (chosen on the training parts): `{res.get('backbone')}`; the bias state starts at zero "
+           "(no one device's bias).",
+           f"- **Inference knobs** (chosen on the validation parts): `{knobs}`.",
+           f"- **Size / sha256**: {len(data) / 1e6:.2f} MB, `{hashlib.sha256(data).hexdigest()}`"]
+    out += cost_lines(model, log)
+    out += ["", "```bash", f"python scripts/train.py experiment={name}_res run_dir=runs/general/{name}",
+            f"python scripts/release_checkpoint.py runs/general/{name}/checkpoints/last.ckpt checkpoints/{name}.ckpt", "```", ""]
+    if lodo_json and Path(lodo_json).is_file():
+        lj = json.loads(Path(lodo_json).read_text())
+        out += ["## Datasets it never saw: the same recipe, one dataset left out (`python scripts/benchmark.py lodo`)", "",
+                lodo_markdown(lj)]
+    out += ["## Held-out test recordings (`python scripts/benchmark.py transfer`)", "",
+            "| data (split) | this checkpoint | best classical (AAE) | best inclination | never worse? |",
+            "|---|---|---|---|---|"]
+    out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
+    print("\n".join(out))
+
+
 def main(name, ckpt, cv_json, tr_json, log=None):
+    if json.loads(Path(cv_json).read_text()).get("lodo") is not None:
+        return general(name, ckpt, cv_json, tr_json, log)
     meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)
     model = model_from_checkpoint(ckpt)
     res = meta["model"].get("residual", {})
@@ -34,10 +104,7 @@ def main(name, ckpt, cv_json, tr_json, log=None):
            f"- **Data**: every training recording of `{meta.get('data')}`, whole (`train.all_recordings=true`); the "
            "fixed schedule's last epoch ships; nothing held out, nothing selected.",
            f"- **Size / sha256**: {len(data) / 1e6:.2f} MB, `{hashlib.sha256(data).hexdigest()}`"]
-    if log and Path(log).is_file():
-        m = re.search(r"training took ([0-9.]+) s", Path(log).read_text(errors="replace"))
-        if m:
-            out.append(f"- **Training time**: {float(m.group(1)):.0f} s on this 2-core CPU (no GPU).")
+    out += cost_lines(model, log)
     out += ["", "```bash", f"python scripts/train.py experiment={name}_res train.all_recordings=true run_dir=runs/release/{name}",
             f"python scripts/release_checkpoint.py runs/release/{name}/checkpoints/last.ckpt checkpoints/{name}.ckpt", "```", "",
             f"## Nested folds (`python scripts/crossval.py experiment={name}_res`), mean AAE / inclination, degrees", "",
@@ -49,14 +116,7 @@ def main(name, ckpt, cv_json, tr_json, log=None):
     out += ["", "## Recordings it never saw (`python scripts/benchmark.py transfer`)", "",
             "| data (split) | this checkpoint | best classical (AAE) | best inclination | never worse? |",
             "|---|---|---|---|---|"]
-    row = json.loads(Path(tr_json).read_text())["matrix"].get(name, {})
-    for d, c in row.items():
-        if not isinstance(c, dict) or "learned" not in c:
-            continue
-        l, b = c["learned"], c["best_metrics"] or {}
-        out.append(f"| {d} ({c.get('split')}, {len(c['recordings'])} rec.) | {l['aae_deg']:.2f} / {l['inclination_deg']:.2f} | "
-                   f"{c['best']} {b.get('aae_deg', float('nan')):.2f} | {c['best_inclination_deg']:.2f} | "
-                   f"{'yes' if c['never_worse'] else '**no**'} |")
+    out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
     print("\n".join(out))
 
 

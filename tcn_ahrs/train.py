@@ -19,7 +19,7 @@ from typing import Any, Dict, List, Mapping, Optional
 import numpy as np
 import pytorch_lightning as pl
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from . import so3
 from .checkpoint import (AtomicCheckpointIO, CheckpointError, check_layout, checkpoint_meta, layout_meta,
@@ -549,6 +549,10 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         # fine-tuning: the architecture, knobs and weights are the checkpoint's; the model group is not used
         from .checkpoint import model_from_checkpoint
 
+        shipped = Path(__file__).resolve().parents[1] / str(cfg.init)
+        if not Path(str(cfg.init)).is_file() and shipped.is_file():  # checkpoints/... from anywhere
+            with open_dict(cfg):
+                cfg.init = str(shipped)
         init_model = model_from_checkpoint(str(cfg.init))
         check_layout(load_checkpoint(str(cfg.init)), axes, str(cfg.init))
         model_cfg = dict(checkpoint_meta(load_checkpoint(str(cfg.init)), str(cfg.init))["model"])

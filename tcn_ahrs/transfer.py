@@ -40,6 +40,20 @@ def cell_recordings(data_cfg: Mapping, own: bool) -> Optional[str]:
     return "trainval"
 
 
+def own_datasets(data_name: str) -> List[str]:
+    """The datasets a checkpoint trained on: its data's ``parts`` (``conf/data/general6.yaml``)
+    or its data alone."""
+    from omegaconf import OmegaConf
+
+    p = Path(__file__).resolve().parents[1] / "conf" / "data" / f"{data_name}.yaml"
+    if p.is_file():
+        parts = (OmegaConf.to_container(OmegaConf.load(p), resolve=False) or {}).get("defaults") or []
+        names = [str(d).split("@")[0] for d in parts if isinstance(d, str) and "@parts." in d]
+        if names:
+            return names
+    return [data_name]
+
+
 def score_cell(ckpt: str, label: str, seqs, axes: int, baselines: Sequence[str]) -> Dict[str, Any]:
     """One cell: the checkpoint and the baselines on ``seqs`` through the evaluation runner."""
     ests = [registry.build("learned", ckpt=ckpt, label=label)]
@@ -75,11 +89,12 @@ def transfer(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], baselin
     for label, path in ckpts.items():
         meta = checkpoint_meta(load_checkpoint(path), path)
         axes, own = int(meta["layout"]["axes"]), str(meta.get("data", ""))
+        owns = own_datasets(own)
         row: Dict[str, Any] = {"axes": axes, "trained_on": own}
         for name, cfg in data_cfgs.items():
             if axes == 9 and int(cfg.get("axes", 9)) != 9:
                 continue  # no magnetometer there
-            split = cell_recordings(cfg, own == name)
+            split = cell_recordings(cfg, name in owns)
             if split is None:
                 row[name] = {"skipped": "own dataset without a visible test split: see its crossval folds"}
                 continue

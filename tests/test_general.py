@@ -181,3 +181,41 @@ def test_own_model_is_the_mean_over_recordings_of_its_nested_folds(tmp_path):
             "never_worse": False, "recordings": ["a", "b"], "riann": None}
     md = markdown({"lodo": {"x": cell}})
     assert "| x (2) | 2.10 / 0.60 | 2.00 / 0.60 |" in md and "**no**" in md
+
+
+def _compose(overrides):
+    from pathlib import Path
+
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        return compose("train", overrides=overrides)
+
+
+@pytest.mark.parametrize("supervision", ["gt", "self"])
+def test_fine_tuning_starts_from_the_checkpoint_with_or_without_ground_truth(tmp_path, supervision):
+    """init=CKPT: the checkpoint's architecture and weights are the start (one small step away
+    after training); supervision=self trains on recordings that have no ground truth at all."""
+    from tcn_ahrs.checkpoint import model_from_checkpoint
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.train import train_main
+
+    init = _general_checkpoint(tmp_path, axes=9)
+    tr = [simulate(p, 20.0, 100.0, s) for s, p in enumerate(["static", "walking"])]
+    va = [simulate("slow_rotation", 12.0, 100.0, 50)]
+    if supervision == "self":
+        for s in tr:
+            s.quat, s.quat_valid = None, np.zeros(len(s), dtype=bool)
+    cfg = _compose(["experiment=finetune", "data=generic", f"init={init}", f"train.supervision={supervision}",
+                    "train.epochs=1", "train.window=400", "train.stride=200", "train.batch_size=4",
+                    "trainer.enable_progress_bar=false", "eval.enabled=false", "threads=1",
+                    f"run_dir={tmp_path / 'run'}"])
+    res = train_main(cfg, tr, va, [])
+    start, tuned = model_from_checkpoint(str(init)), model_from_checkpoint(res["last"])
+    w0, w1 = start.calibration.gyro_net.out.weight, tuned.calibration.gyro_net.out.weight
+    assert w1.shape == w0.shape and not torch.equal(w0, w1)
+    assert float((w1 - w0).abs().max()) < 0.05 * float(w0.abs().max())  # fine-tuned, not re-initialised
+    assert float(tuned.backbone.bias_prior) == 1.0  # this device's bias is the start
+    if supervision == "gt":
+        assert "knobs" in res  # chosen again on the validation recordings

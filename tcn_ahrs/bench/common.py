@@ -195,4 +195,21 @@ def tcn_flops_per_sample(model) -> int:
     return total
 
 
+def footprint(model) -> Dict[str, int]:
+    """What a model costs on a device: trainable ``parameters``, ``weight_bytes`` (float32),
+    the streaming runtime's ``state_floats`` (the networks' ring buffers, float32, plus the
+    filter's state, float64) and ``state_bytes``, and ``flops_per_sample`` of the networks
+    (:func:`tcn_flops_per_sample`; the filter's few hundred operations not counted)."""
+    params = int(sum(p.numel() for p in model.parameters()))
+    ring = filt = 0
+    if getattr(model, "backbone", None) is not None:
+        from ..export.backbone import ResidualStreaming
+        from ..kernels import backbone as K
+
+        s = ResidualStreaming(model.eval(), {})
+        ring, filt = int(sum(b.numel() for b in s.ring_buffers)), int(K.N_STATE)
+    return {"parameters": params, "weight_bytes": 4 * params, "state_floats": ring + filt,
+            "state_bytes": 4 * ring + 8 * filt, "flops_per_sample": int(tcn_flops_per_sample(model))}
+
+
 # ============================================================================ training
