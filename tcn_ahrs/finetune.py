@@ -43,8 +43,7 @@ def finetune_run(dataset: str, mode: str, init: Path, recordings: Sequence[str],
     done = run_dir / ("knobs.json" if mode == "gt" else "done")
     if done.is_file() and ckpt.is_file():
         return ckpt
-    from hydra import compose, initialize_config_dir
-
+    from .lodo import compose_train
     from .train import train_main
 
     recs = "[" + ",".join(f"'{r}'" for r in recordings) + "]"
@@ -55,8 +54,7 @@ def finetune_run(dataset: str, mode: str, init: Path, recordings: Sequence[str],
     args += list(overrides)
     if ckpt.is_file():
         args.append("resume=true")
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        cfg = compose("train", args)
+    cfg = compose_train(args)
     print(f"finetune: {' '.join(args)}", flush=True)
     train_main(cfg, overrides=list(args))
     if mode == "self":

@@ -48,21 +48,30 @@ def own_model(nested_json: Path) -> Optional[Dict[str, float]]:
     return out
 
 
+def compose_train(args: Sequence[str]):
+    """``conf/train.yaml`` with ``args``, inside a running Hydra app (``scripts/benchmark.py``,
+    whose search path is the same ``conf/``) or outside one."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        return compose("train", list(args))
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        return compose("train", list(args))
+
+
 def train_left_out(dataset: str, run_dir: Path, experiment: str, overrides: Sequence[str] = ()) -> Path:
     """Train (or resume, or reuse) the general model without ``dataset``; returns its checkpoint."""
     ckpt = run_dir / "checkpoints" / "last.ckpt"
     if (run_dir / "knobs.json").is_file() and ckpt.is_file():
         return ckpt
-    from hydra import compose, initialize_config_dir
-
     from .train import train_main
 
     args = [f"experiment={experiment}", f"data.leave_out={dataset}", f"run_dir={run_dir}",
             "eval.enabled=false", *overrides]
     if ckpt.is_file():
         args.append("resume=true")
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        cfg = compose("train", args)
+    cfg = compose_train(args)
     print(f"lodo: training without {dataset}: {' '.join(args)}", flush=True)
     train_main(cfg, overrides=list(args))
     return ckpt

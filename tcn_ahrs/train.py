@@ -33,7 +33,7 @@ from .validate import check_keys, check_number, set_threads
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
               "attitude_delta", "ema_decay", "init_gyro_bias", "tune_backbone", "all_recordings",
-              "select_knobs", "augment", "balance", "supervision"}
+              "select_knobs", "augment", "balance", "supervision", "knob_grid"}
 AUGMENT_KEYS = {"rate_hz", "jitter", "rotate", "gyro_bias", "scale"}
 
 
@@ -258,17 +258,19 @@ def _aae_deg(rot_gt: torch.Tensor, rot_est: torch.Tensor) -> torch.Tensor:
     return torch.sqrt((err ** 2).sum(-1).mean()) * (180.0 / math.pi)
 
 
-def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path) -> Dict[str, float]:
-    """Choose the residual model's inference knobs (:func:`tcn_ahrs.tuning.select_residual_knobs`)
-    on ``val_seqs`` and write them into the checkpoint's model config (atomically; the
-    checkpoint then IS the selected model); the table goes to ``run_dir/knobs.json``."""
+def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path,
+                                 grid: Optional[Mapping[str, Any]] = None) -> Dict[str, float]:
+    """Choose the residual model's inference knobs (:func:`tcn_ahrs.tuning.select_residual_knobs`,
+    over ``grid``, default its own) on ``val_seqs`` and write them into the checkpoint's model
+    config (atomically; the checkpoint then IS the selected model); the table goes to
+    ``run_dir/knobs.json``."""
     import json
 
     from .checkpoint import atomic_save, model_from_checkpoint
     from .tuning import select_residual_knobs
 
     model = model_from_checkpoint(ckpt_path)
-    chosen, table = select_residual_knobs(model, val_seqs)
+    chosen, table = select_residual_knobs(model, val_seqs, grid=grid)
     ck = load_checkpoint(ckpt_path)
     for cfg in (ck["tcn_ahrs"]["model"], (ck.get("hyper_parameters") or {}).get("model_cfg")):
         if cfg is not None:
@@ -586,7 +588,8 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
 
         # the backbone's knobs, chosen on the training recordings before any network trains
         # (never on the held-out ones); stored in the model config, so the checkpoint keeps them
-        chosen, table = tune_backbone(dm.train_seqs, axes)
+        chosen, table = tune_backbone(dm.train_seqs, axes,
+                                      gyro_bias_std=float((cfg.train.get("augment") or {}).get("gyro_bias") or 0.0))
         res = dict(model_cfg.get("residual") or {})
         res["backbone"] = {**dict(res.get("backbone") or {}), **chosen}
         model_cfg["residual"] = res
@@ -670,7 +673,8 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         best = last
         result["best"] = last
         if cfg.train.get("select_knobs", True) and dm.val_seqs:
-            result["knobs"] = choose_knobs_into_checkpoint(last, dm.val_seqs, run_dir)
+            result["knobs"] = choose_knobs_into_checkpoint(last, dm.val_seqs, run_dir,
+                                                           _plain(cfg.train.get("knob_grid")) or None)
     print(f"training took {fit_s:.1f} s; best checkpoint {best} ({monitor} = {ckpt_cb.best_model_score})")
     done_epochs = int(trainer.current_epoch)
     if cfg.train.get("max_time") and done_epochs < int(cfg.train.epochs):

@@ -219,3 +219,17 @@ def test_fine_tuning_starts_from_the_checkpoint_with_or_without_ground_truth(tmp
     assert float(tuned.backbone.bias_prior) == 1.0  # this device's bias is the start
     if supervision == "gt":
         assert "knobs" in res  # chosen again on the validation recordings
+
+
+def test_knobs_for_another_device_are_chosen_on_offset_copies_and_leave_the_recordings_alone():
+    from tcn_ahrs.tuning import with_gyro_offsets
+
+    seqs = [_turning(), _turning(omega=(0.0, 0.2, 0.0))]
+    before = [s.gyro.copy() for s in seqs]
+    copies = with_gyro_offsets(seqs, 0.03, seed=1)
+    for s, c, g in zip(seqs, copies, before):
+        off = c.gyro - s.gyro
+        assert np.array_equal(s.gyro, g)  # untouched
+        assert np.allclose(off, off[0]) and 0.0 < np.abs(off[0]).max() < 0.2  # one constant offset
+        assert c.quat is s.quat
+    assert not np.allclose(copies[0].gyro - seqs[0].gyro, copies[1].gyro - seqs[1].gyro)
