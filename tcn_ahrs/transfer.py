@@ -166,7 +166,80 @@ def transfer_main(cfg) -> Dict[str, Any]:
             continue
         data_cfgs[d] = c
     out = Path(cfg.get("out") or "runs/benchmark/transfer")
+    if t.get("rates"):
+        return sweep_main(ckpts, data_cfgs, [float(r) for r in t["rates"]], out)
     res = transfer(ckpts, data_cfgs, list(t.get("baselines") or BASELINES), out)
     print(markdown(res))
     print(f"results in {out}")
+    return res
+
+
+def resampled(seq, rate_hz: float):
+    """``seq`` as a device at ``rate_hz`` would have recorded it: readings interpolated linearly
+    onto a uniform grid, the ground truth along the geodesic (normalised quaternion interpolation
+    between neighbours, a few ms apart), valid where both neighbours are."""
+    import numpy as np
+
+    from .sequence import ImuSequence
+
+    t = seq.time
+    grid = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * rate_hz)) + 1) / rate_hz
+    j = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, len(t) - 2)
+    w = ((grid - t[j]) / (t[j + 1] - t[j])).clip(0.0, 1.0)[:, None]
+
+    def lerp(x):
+        return None if x is None else (1 - w) * x[j] + w * x[j + 1]
+
+    quat = valid = None
+    if seq.quat is not None:
+        qa, qb = seq.quat[j], seq.quat[j + 1]
+        qb = np.where((qa * qb).sum(1, keepdims=True) < 0, -qb, qb)
+        quat = (1 - w) * qa + w * qb
+        quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+        valid = seq.quat_valid[j] & seq.quat_valid[j + 1]
+        quat[~valid] = np.nan
+    return ImuSequence(name=seq.name, source=f"{seq.source} at {rate_hz:g} Hz", time=grid, gyro=lerp(seq.gyro),
+                       accel=lerp(seq.accel), mag=lerp(seq.mag), quat=quat, rate=float(rate_hz),
+                       check_units=False, meta=dict(seq.meta))
+
+
+def rate_sweep(ckpt: str, seqs, axes: int, rates, baselines=("backbone", "vqf", "mahony")) -> Dict[str, Any]:
+    """One checkpoint and ``baselines`` on ``seqs`` resampled to each of ``rates`` (Hz)."""
+    rows = {}
+    for r in rates:
+        cell = score_cell(ckpt, "learned", [resampled(s, float(r)) for s in seqs], axes, baselines)
+        rows[str(r)] = {"learned": cell["learned"], "all": cell["all"]}
+    return {"rates": [float(r) for r in rates], "rows": rows, "recordings": [s.name for s in seqs]}
+
+
+def sweep_main(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], rates: Sequence[float], out: Path):
+    """``transfer.rates=[...]``: every checkpoint on the recordings of its matrix cells,
+    resampled to each rate, beside the backbone, VQF and Mahony at the same rate."""
+    from .datasets import load_split
+
+    out.mkdir(parents=True, exist_ok=True)
+    res: Dict[str, Any] = {}
+    lines = ["| checkpoint on data (split) | rate Hz | learned | backbone | VQF | Mahony |", "|---|---|---|---|---|---|"]
+    for label, path in ckpts.items():
+        meta = checkpoint_meta(load_checkpoint(path), path)
+        axes, owns = int(meta["layout"]["axes"]), own_datasets(str(meta.get("data", "")))
+        for name, cfg in data_cfgs.items():
+            split = cell_recordings(cfg, name in owns)
+            if split is None or (axes == 9 and int(cfg.get("axes", 9)) != 9):
+                continue
+            seqs = [s for s in load_split({**dict(cfg), "fold": None}, split) if s.quat is not None and s.scored().any()]
+            seqs = [s.without_mag() if (axes == 6 and s.has_mag) else s for s in seqs]
+            sw = rate_sweep(path, seqs, axes, rates)
+            res[f"{label}/{name}"] = {**sw, "split": split}
+            for r, row in sw["rows"].items():
+                a = row["all"]
+                cells = [row["learned"]] + [next((v for k, v in a.items() if k.startswith(m)), None)
+                                             for m in ("backbone", "vqf", "mahony")]
+                lines.append(f"| {label} on {name} ({split}, {len(seqs)} rec.) | {float(r):g} | " + " | ".join(
+                    "–" if c is None else f"{c['aae_deg']:.2f} / {c['inclination_deg']:.2f}" for c in cells) + " |")
+                print(lines[-1], flush=True)
+    (out / "rates.json").write_text(json.dumps(jsonable(res), indent=1))
+    md = "\n".join(lines) + "\n\nMean AAE / inclination, degrees; each recording resampled to the rate (readings linear, ground truth along the geodesic).\n"
+    (out / "rates.md").write_text(md)
+    print(md)
     return res
