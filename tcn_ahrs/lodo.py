@@ -77,9 +77,23 @@ def train_left_out(dataset: str, run_dir: Path, experiment: str, overrides: Sequ
     return ckpt
 
 
+def reselect(dataset: str, run_dir: Path, experiment: str, overrides: Sequence[str] = ()) -> None:
+    """Choose a finished run's inference knobs again on its validation parts, with the recipe's
+    current ``train.knob_grid`` and ``train.knob_rule`` (the checkpoint is rewritten atomically)."""
+    from omegaconf import OmegaConf
+
+    from .datasets import load_split
+    from .train import choose_knobs_into_checkpoint
+
+    cfg = compose_train([f"experiment={experiment}", f"data.leave_out={dataset}", *overrides])
+    grid = OmegaConf.to_container(cfg.train.knob_grid, resolve=True) if cfg.train.get("knob_grid") else None
+    choose_knobs_into_checkpoint(str(run_dir / "checkpoints" / "last.ckpt"), load_split(cfg.data, "val"), run_dir,
+                                 grid, str(cfg.train.get("knob_rule") or "both"))
+
+
 def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "general6_res",
          overrides: Sequence[str] = (), baselines: Sequence[str] = BASELINES, train: bool = True,
-         nested: Path = Path("runs/nested"), out: Optional[Path] = None) -> Dict[str, Any]:
+         nested: Path = Path("runs/nested"), out: Optional[Path] = None, reselect_knobs: bool = False) -> Dict[str, Any]:
     """The table over ``data_cfgs`` {dataset: its data config} (6 axes)."""
     from .datasets import load_split
 
@@ -92,6 +106,8 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
         if not ckpt.is_file():
             rows[name] = {"skipped": f"no model trained without {name} at {ckpt} (lodo.train=true trains it)"}
             continue
+        if reselect_knobs:
+            reselect(name, run_dir, experiment, overrides)
         cfg = {**dict(cfg), "fold": None, "axes": 6}
         seqs = [s for s in load_split(cfg, "trainval") if s.quat is not None and s.scored().any()]
         cell = score_cell(str(ckpt), "general", seqs, 6, baselines)
@@ -159,7 +175,7 @@ def lodo_main(cfg) -> Dict[str, Any]:
     out = Path(cfg.get("out") or "runs/benchmark/lodo")
     res = lodo(data_cfgs, Path(t.get("runs") or "runs/lodo"), str(t.get("experiment") or "general6_res"),
                list(t.get("overrides") or []), list(t.get("baselines") or BASELINES), bool(t.get("train", True)),
-               Path(t.get("nested") or "runs/nested"), out)
+               Path(t.get("nested") or "runs/nested"), out, bool(t.get("reselect", False)))
     print(markdown(res))
     print(f"results in {out}")
     return res

@@ -33,7 +33,8 @@ from .validate import check_keys, check_number, set_threads
 TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", "loss_js",
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
               "attitude_delta", "ema_decay", "init_gyro_bias", "tune_backbone", "all_recordings",
-              "select_knobs", "augment", "balance", "supervision", "knob_grid"}
+              "select_knobs", "augment", "balance", "supervision", "knob_grid",
+              "knob_rule"}
 AUGMENT_KEYS = {"rate_hz", "jitter", "rotate", "gyro_bias", "scale"}
 
 
@@ -259,7 +260,7 @@ def _aae_deg(rot_gt: torch.Tensor, rot_est: torch.Tensor) -> torch.Tensor:
 
 
 def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path,
-                                 grid: Optional[Mapping[str, Any]] = None) -> Dict[str, float]:
+                                 grid: Optional[Mapping[str, Any]] = None, rule: str = "both") -> Dict[str, float]:
     """Choose the residual model's inference knobs (:func:`tcn_ahrs.tuning.select_residual_knobs`,
     over ``grid``, default its own) on ``val_seqs`` and write them into the checkpoint's model
     config (atomically; the checkpoint then IS the selected model); the table goes to
@@ -270,7 +271,7 @@ def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path,
     from .tuning import select_residual_knobs
 
     model = model_from_checkpoint(ckpt_path)
-    chosen, table = select_residual_knobs(model, val_seqs, grid=grid)
+    chosen, table = select_residual_knobs(model, val_seqs, grid=grid, rule=rule)
     ck = load_checkpoint(ckpt_path)
     for cfg in (ck["tcn_ahrs"]["model"], (ck.get("hyper_parameters") or {}).get("model_cfg")):
         if cfg is not None:
@@ -279,8 +280,9 @@ def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path,
     (run_dir / "knobs.json").write_text(json.dumps({"chosen": chosen, "on": [s.name for s in val_seqs],
                                                      "table": table}, indent=1))
     ref = next(r for r in table if r["reference"])
+    row = next(r for r in table if r["knobs"] == chosen)
     print(f"inference knobs chosen on the {len(val_seqs)} validation recordings: {chosen} (mean AAE "
-          f"{table[0]['aae_deg']:.2f} / inclination {table[0]['inclination_deg']:.2f} deg; the tuned backbone "
+          f"{row['aae_deg']:.2f} / inclination {row['inclination_deg']:.2f} deg; the tuned backbone "
           f"alone {ref['aae_deg']:.2f} / {ref['inclination_deg']:.2f}); table in {run_dir / 'knobs.json'}")
     return chosen
 
@@ -674,7 +676,8 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         result["best"] = last
         if cfg.train.get("select_knobs", True) and dm.val_seqs:
             result["knobs"] = choose_knobs_into_checkpoint(last, dm.val_seqs, run_dir,
-                                                           _plain(cfg.train.get("knob_grid")) or None)
+                                                           _plain(cfg.train.get("knob_grid")) or None,
+                                                           str(cfg.train.get("knob_rule") or "both"))
     print(f"training took {fit_s:.1f} s; best checkpoint {best} ({monitor} = {ckpt_cb.best_model_score})")
     done_epochs = int(trainer.current_epoch)
     if cfg.train.get("max_time") and done_epochs < int(cfg.train.epochs):

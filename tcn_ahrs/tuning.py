@@ -360,13 +360,36 @@ def set_residual_knobs(model, knobs: Mapping[str, float]) -> None:
 
 
 @torch.no_grad()
+def knob_points_eligible(mean: np.ndarray, finite: np.ndarray, margin: float = RESIDUAL_KNOB_MARGIN,
+                         rule: str = "both") -> np.ndarray:
+    """(P,) bool: which points may replace point 0 (the tuned backbone), from their (P, 2) mean
+    AAE and inclination and whether every recording's scores were finite. ``rule`` "both": better
+    than point 0 by ``margin`` (relative) in both; "either": no worse in either and better by
+    ``margin`` in one."""
+    if rule not in ("both", "either"):
+        raise ValueError(f"knob rule: expected 'both' or 'either', got {rule!r}")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = mean / np.maximum(mean[0], 1e-9)
+    worst = np.where(finite, ratio.max(-1), np.inf)
+    best = np.where(finite, ratio.min(-1), np.inf)
+    ok = worst < 1.0 - float(margin)
+    if rule == "either":
+        ok = ok | ((worst <= 1.0) & (best < 1.0 - float(margin)))
+    ok[0] = False
+    return ok
+
+
 def select_residual_knobs(model, sequences: Sequence[ImuSequence], grid: Optional[Mapping[str, Sequence]] = None,
-                          margin: float = RESIDUAL_KNOB_MARGIN) -> Tuple[Dict[str, float], List[dict]]:
+                          margin: float = RESIDUAL_KNOB_MARGIN, rule: str = "both") -> Tuple[Dict[str, float], List[dict]]:
     """The inference knobs of a trained residual model (``loop: backbone``), chosen on
     ``sequences`` (held-out recordings with ground truth): the point whose worse ratio of mean AAE
     and mean inclination to the tuned backbone's (``correct`` 1, no residual) is lowest, both as
     the evaluation runner scores them (start at the first valid ground truth, AAE aligned there).
-    A point replaces the tuned backbone only if its criterion is below ``1 − margin``. The networks run once per recording; each point re-runs only the backbone (numba).
+    A point replaces the tuned backbone only if its criterion is below ``1 − margin`` (``rule``
+    "both": better by the margin in AAE and in inclination) — or, ``rule`` "either", if it is no
+    worse in either and better by the margin in one (a general model: over many devices the
+    inclination is the backbone's and ties). The networks run once per recording; each point
+    re-runs only the backbone (numba).
     Sets the chosen knobs on ``model``; returns them and the table (best first)."""
     from .estimators.base import initial_state
     from .estimators.learned import model_input
@@ -414,7 +437,9 @@ def select_residual_knobs(model, sequences: Sequence[ImuSequence], grid: Optiona
               "inclination_deg": float(scores[i, :, 1].mean()),
               "per_sequence": {s.name: [float(x) for x in scores[i, j]] for j, s in enumerate(seqs)}}
              for i in order]
-    chosen = dict(points[order[0]]) if crit[order[0]] < 1.0 - float(margin) else dict(points[0])
+    ok = knob_points_eligible(mean, np.isfinite(scores).all((1, 2)), margin, rule)
+    eligible = [i for i in order if ok[i]]
+    chosen = dict(points[eligible[0]]) if eligible else dict(points[0])
     set_residual_knobs(model, chosen)
     model.train(was_training)
     return chosen, table

@@ -250,3 +250,20 @@ def test_a_recording_resampled_for_the_rate_sweep_is_the_same_motion():
         loss = increment_loss(t["imu"][None, :, 0:3], t["dt"][None], t["rot"][None], t["valid"][None], [16])
         # point samples integrated over 20 ms steps (50 Hz) err by 2e-4; a gyro two samples late: 2.4e-3
         assert float(loss) < (5e-4 if rate == 50.0 else 1e-6), rate
+
+
+def test_a_knob_point_may_win_on_one_number_only_under_the_either_rule():
+    from tcn_ahrs.tuning import knob_points_eligible
+
+    mean = np.array([[10.0, 1.0],    # the tuned backbone
+                     [5.0, 1.0],     # AAE halved, inclination tied
+                     [9.0, 0.9],     # both 10 % better
+                     [5.0, 1.05],    # AAE halved, inclination 5 % worse
+                     [9.95, 0.995]])  # both better, by less than the margin
+    finite = np.array([True, True, True, True, True])
+    assert knob_points_eligible(mean, finite, 0.02, "both").tolist() == [False, False, True, False, False]
+    assert knob_points_eligible(mean, finite, 0.02, "either").tolist() == [False, True, True, False, False]
+    finite[2] = False  # diverged on some recording
+    assert not knob_points_eligible(mean, finite, 0.02, "either")[2]
+    with pytest.raises(ValueError, match="knob rule"):
+        knob_points_eligible(mean, finite, 0.02, "any")
