@@ -34,7 +34,7 @@ TRAIN_KEYS = {"window", "stride", "batch_size", "epochs", "lr", "weight_decay", 
               "huber_delta", "noise", "monitor", "max_time", "limit_train_batches", "stream_chunks",
               "attitude_delta", "ema_decay", "init_gyro_bias", "tune_backbone", "all_recordings",
               "select_knobs", "augment", "balance", "supervision", "knob_grid",
-              "knob_rule"}
+              "knob_rule", "tune_criterion"}
 AUGMENT_KEYS = {"rate_hz", "jitter", "rotate", "gyro_bias", "scale"}
 
 
@@ -591,12 +591,13 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         # the backbone's knobs, chosen on the training recordings before any network trains
         # (never on the held-out ones); stored in the model config, so the checkpoint keeps them
         chosen, table = tune_backbone(dm.train_seqs, axes,
-                                      gyro_bias_std=float((cfg.train.get("augment") or {}).get("gyro_bias") or 0.0))
+                                      gyro_bias_std=float((cfg.train.get("augment") or {}).get("gyro_bias") or 0.0),
+                                      criterion=str(cfg.train.get("tune_criterion") or "aae"))
         res = dict(model_cfg.get("residual") or {})
         res["backbone"] = {**dict(res.get("backbone") or {}), **chosen}
         model_cfg["residual"] = res
         print(f"backbone parameters chosen on the {len(dm.train_seqs)} training recordings: {chosen} "
-              f"(mean AAE {table[0]['score']:.2f} deg; VQF's defaults "
+              f"(score {table[0]['score']:.2f}, {cfg.train.get('tune_criterion') or 'aae'}; VQF's defaults "
               f"{next(r['score'] for r in table if r['params'].get('tau_acc') == 3.0 and r['params'].get('motion_bias') == 1.0 and r['params'].get('bias_clip') == 2.0 and r['params'].get('tau_mag', 9.0) == 9.0):.2f})")
     module = AHRSModule(model_cfg, axes, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay),
                         epochs=int(cfg.train.epochs), window=dm.window, loss_js=list(cfg.train.loss_js),

@@ -278,12 +278,15 @@ def with_gyro_offsets(sequences: Sequence[ImuSequence], std: float, seed: int = 
 
 def tune_backbone(sequences: Sequence[ImuSequence], axes: int,
                   grid: Optional[Mapping[str, Sequence]] = None,
-                  gyro_bias_std: float = 0.0) -> Tuple[Dict[str, float], List[dict]]:
+                  gyro_bias_std: float = 0.0, criterion: str = "aae") -> Tuple[Dict[str, float], List[dict]]:
     """The backbone's parameters for a learned model, chosen on its TRAINING recordings only
     (the untrained backbone's mean AAE over :data:`BACKBONE_GRID`; ``tau_mag`` only at 9 axes).
     ``gyro_bias_std`` > 0 (a general model, ``train.augment.gyro_bias``): chosen on the recordings
     with a random constant gyro offset each (:func:`with_gyro_offsets`), so the knobs hold on a
-    device whose gyro is not calibrated."""
+    device whose gyro is not calibrated. ``criterion`` "aae": the lowest mean AAE; "never_worse":
+    the lowest mean over datasets (recordings named ``<part>/<name>``) of the worse of the AAE and
+    inclination ratios to VQF's defaults (the grid's first point), so no dataset's inclination is
+    traded for another's heading."""
     from .estimators.backbone import Backbone
 
     g = dict(grid or BACKBONE_GRID)
@@ -292,8 +295,34 @@ def tune_backbone(sequences: Sequence[ImuSequence], axes: int,
         sequences = [s.without_mag() if s.has_mag else s for s in sequences]
     if gyro_bias_std > 0.0:
         sequences = with_gyro_offsets(sequences, float(gyro_bias_std))
+    if criterion == "never_worse":
+        return _tune_never_worse(Backbone(axes=axes), [s for s in sequences if s.quat is not None], g)
+    if criterion != "aae":
+        raise ValueError(f"train.tune_criterion: expected 'aae' or 'never_worse', got {criterion!r}")
     best, table = tune_grid(Backbone(axes=axes), [s for s in sequences if s.quat is not None], g)
     return {k: float(v) for k, v in best.items()}, table
+
+
+def _tune_never_worse(est, seqs: Sequence[ImuSequence], grid: Mapping[str, Sequence]) -> Tuple[Dict[str, float], List[dict]]:
+    """:func:`tune_backbone`'s "never_worse" criterion (point 0 = the reference)."""
+    from .metrics import broad_errors
+
+    points = grid_combinations(grid)
+    aae = score_points(est, seqs, points, "aae")
+    incl = score_points(est, seqs, points, lambda q, e, m: broad_errors(q, e, m, "6d")["inclination_deg"])
+    part_of = np.array([s.name.split("/", 1)[0] if "/" in s.name else "" for s in seqs])
+    crit = np.zeros(len(points))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for p in dict.fromkeys(part_of):
+            k = part_of == p
+            ra = np.nanmean(aae[:, k], 1) / max(np.nanmean(aae[0, k]), 1e-9)
+            ri = np.nanmean(incl[:, k], 1) / max(np.nanmean(incl[0, k]), 1e-9)
+            crit += np.maximum(ra, ri) / len(set(part_of))
+    crit = np.where(np.isfinite(crit), crit, np.inf)
+    order = np.argsort(crit, kind="stable")
+    table = [{"params": dict(points[i]), "score": float(crit[i]), "aae_deg": float(np.nanmean(aae[i])),
+              "inclination_deg": float(np.nanmean(incl[i]))} for i in order]
+    return {k: float(v) for k, v in points[order[0]].items()}, table
 
 
 def backbone_bias(sequences: Sequence[ImuSequence], axes: int, params: Mapping[str, float]) -> np.ndarray:

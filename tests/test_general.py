@@ -267,3 +267,22 @@ def test_a_knob_point_may_win_on_one_number_only_under_the_either_rule():
     assert not knob_points_eligible(mean, finite, 0.02, "either")[2]
     with pytest.raises(ValueError, match="knob rule"):
         knob_points_eligible(mean, finite, 0.02, "any")
+
+
+def test_never_worse_knob_choice_is_scored_per_dataset_against_vqf_defaults():
+    import copy
+
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.tuning import tune_backbone
+
+    seqs = []
+    for part, (profile, seed) in {"a": ("walking", 1), "b": ("slow_rotation", 2)}.items():
+        s = copy.copy(simulate(profile, 20.0, 100.0, seed, axes=6))
+        s.name = f"{part}/{s.name}"
+        seqs.append(s)
+    grid = {"tau_acc": [3.0, 10.0], "bias_clip": [2.0, 8.0]}
+    chosen, table = tune_backbone(seqs, 6, grid, criterion="never_worse")
+    ref = next(r for r in table if r["params"] == {"tau_acc": 3.0, "bias_clip": 2.0})
+    assert ref["score"] == pytest.approx(1.0) and table[0]["score"] <= 1.0 and chosen == table[0]["params"]
+    with pytest.raises(ValueError, match="tune_criterion"):
+        tune_backbone(seqs, 6, grid, criterion="best")
