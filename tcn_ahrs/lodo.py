@@ -7,8 +7,8 @@ filter, VQF and RIANN on the same recordings.
   rate; its knobs were chosen on the other datasets' validation parts.
 * Which recordings: the left-out dataset's training recordings, whole (``trainval``; its held-back
   test recordings stay held back).
-* The dataset's own model: its nested cross-validation (``runs/nested/<dataset>6/crossval.json``,
-  ``scripts/crossval.py experiment=<dataset>6_res``), whose outer folds cover the same recordings,
+* The dataset's own model: its nested cross-validation (``runs/nested/<dataset><axes>/crossval.json``,
+  ``scripts/crossval.py experiment=<dataset><axes>_res``), whose outer folds cover the same recordings,
   each scored by a model that never saw it (mean over recordings); absent: left blank.
 
 Output: ``lodo.json`` and ``lodo.md`` in ``out``. Training runs live in ``lodo.runs/<dataset>``; a
@@ -94,11 +94,16 @@ def reselect(dataset: str, run_dir: Path, experiment: str, overrides: Sequence[s
 def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "general6_res",
          overrides: Sequence[str] = (), baselines: Sequence[str] = BASELINES, train: bool = True,
          nested: Path = Path("runs/nested"), out: Optional[Path] = None, reselect_knobs: bool = False) -> Dict[str, Any]:
-    """The table over ``data_cfgs`` {dataset: its data config} (6 axes)."""
+    """The table over ``data_cfgs`` {dataset: its data config}, at the experiment's axes
+    (general6_res: 6, general9_res: 9, datasets without a magnetometer skipped)."""
     from .datasets import load_split
+
+    axes = int(compose_train([f"experiment={experiment}", *overrides]).data.axes)
 
     rows: Dict[str, Any] = {}
     for name, cfg in data_cfgs.items():
+        if axes == 9 and int(cfg.get("axes", 9)) != 9:
+            continue  # no magnetometer there
         run_dir = Path(runs) / name
         ckpt = run_dir / "checkpoints" / "last.ckpt"
         if train:
@@ -108,10 +113,10 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
             continue
         if reselect_knobs:
             reselect(name, run_dir, experiment, overrides)
-        cfg = {**dict(cfg), "fold": None, "axes": 6}
+        cfg = {**dict(cfg), "fold": None, "axes": axes}
         seqs = [s for s in load_split(cfg, "trainval") if s.quat is not None and s.scored().any()]
-        cell = score_cell(str(ckpt), "general", seqs, 6, baselines)
-        cell["own"] = own_model(Path(nested) / f"{name}6" / "crossval.json")
+        cell = score_cell(str(ckpt), "general", seqs, axes, baselines)
+        cell["own"] = own_model(Path(nested) / f"{name}{axes}" / "crossval.json")
         cell["riann"] = cell["all"].get("riann6d")
         cell["checkpoint"] = str(ckpt)
         g, own = cell["learned"], cell["own"]
@@ -125,7 +130,7 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
         print(f"lodo {name} ({len(seqs)} rec.): general {g['aae_deg']:.2f}/{g['inclination_deg']:.2f}, best classical "
               f"{cell['best']} {b.get('aae_deg', float('nan')):.2f}, own "
               f"{'-' if own is None else format(own['aae_deg'], '.2f')}", flush=True)
-    result = {"lodo": rows, "experiment": experiment, "overrides": list(overrides), "baselines": list(baselines)}
+    result = {"lodo": rows, "axes": axes, "experiment": experiment, "overrides": list(overrides), "baselines": list(baselines)}
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -142,13 +147,14 @@ def _pair(m: Optional[Mapping[str, Any]]) -> str:
 
 def markdown(result: Mapping[str, Any]) -> str:
     """One row per left-out dataset: mean AAE / inclination (degrees) of each method."""
-    lines = ["| left out (recordings) | general6 | own model (nested folds) | backbone (VQF defaults) | VQF | best classical "
+    axes = int(result.get("axes", 6))
+    lines = [f"| left out (recordings) | general{axes} | own model (nested folds) | backbone (VQF defaults) | VQF | best classical "
              "| RIANN (incl.) | never worse? |", "|---|---|---|---|---|---|---|---|"]
     for name, c in result["lodo"].items():
         if "skipped" in c:
             lines.append(f"| {name} | {c['skipped']} |||||||")
             continue
-        vqf = c["all"].get("vqf6d")
+        vqf = c["all"].get(f"vqf{axes}d")
         best = f"{c['best']} {_pair(c['best_metrics'])}"
         riann = "–" if not c.get("riann") else f"{c['riann']['inclination_deg']:.2f}"
         lines.append(f"| {name} ({len(c['recordings'])}) | {_pair(c['learned'])} | {_pair(c['own'])} | {_pair(c['backbone'])} "
