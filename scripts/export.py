@@ -39,7 +39,8 @@ def main(cfg: DictConfig) -> None:
     for mode, path in written.items():
         md = read_metadata(path)
         print(f"{mode}: {path}  ({md['variant']}, {md['axes']}-axis, preintegration {md['preintegration']}, "
-              f"receptive field {md['receptive_field']}, rate {md['rate_hz']} Hz, "
+              f"receptive field {md['receptive_field']}, rate "
+              f"{'{:g}-{:g}'.format(*md['rate_range_hz']) if md.get('rate_range_hz') else md['rate_hz']} Hz, "
               f"checkpoint sha256 {md['checkpoint_sha256'][:12]}...)")
 
 

@@ -241,7 +241,7 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
                       "metadata rate_hz = null (pass rate=HZ to record it)")
     meta = {"rate_hz": None if rate is None else float(rate), "checkpoint": Path(ckpt_path).name,
             "checkpoint_sha256": file_sha256(ckpt_path), "model_config": ck_meta.get("model"),
-            "data": ck_meta.get("data")}
+            "data": ck_meta.get("data"), "rate_range_hz": (ck_meta.get("layout") or {}).get("rate_range_hz")}
     staged = {k: t.with_name(f".{t.name}.partial") for k, t in targets.items()}
     try:
         for kind, tmp in staged.items():
