@@ -79,15 +79,24 @@ def general(name, ckpt, lodo_json, tr_json, log=None):
         lj = json.loads(Path(lodo_json).read_text())
         out += ["## Datasets it never saw: the same recipe, one dataset left out (`python scripts/benchmark.py lodo`)", "",
                 lodo_markdown(lj)]
+    else:
+        out += ["## Datasets it never saw", "",
+                f"Not measured for this recipe: `python scripts/benchmark.py lodo lodo.experiment={name}_res "
+                "'lodo.datasets=[broad,oxiod]'` would leave BROAD or OxIOD out (not run yet: CPU time).", ""]
     out += ["## Held-out test recordings (`python scripts/benchmark.py transfer`)", "",
             "| data (split) | this checkpoint | best classical (AAE) | best inclination | never worse? |",
             "|---|---|---|---|---|"]
     out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
+    out += ["", "**Limits**: the networks learned their gains at the training datasets' own rates; on BROAD's test trials "
+            "resampled to 50-1000 Hz they cost accuracy against the backbone at the same rate (the rate sweep in "
+            "`docs/results/general_2026-12-03.md`): the model runs at any rate, its learned part helps at the rates it "
+            "saw most. On a dataset it never saw it is not never worse than the best classical filter (leave-one-dataset-out "
+            "table): fine-tune on your recordings (`experiment=finetune`)."]
     print("\n".join(out))
 
 
 def main(name, ckpt, cv_json, tr_json, log=None):
-    if json.loads(Path(cv_json).read_text()).get("lodo") is not None:
+    if name.startswith("general"):
         return general(name, ckpt, cv_json, tr_json, log)
     meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)
     model = model_from_checkpoint(ckpt)
