@@ -16,14 +16,12 @@ Output: ``finetune.json`` and ``finetune.md`` in ``out``; runs in ``finetune.run
 """
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
-from .evaluate.runner import evaluate, jsonable
-from .lodo import CONF, DATASETS
-from .transfer import METRICS
+from .evaluate.runner import evaluate
+from .transfer import METRICS, write_result
 
 BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick")
 MODES = ("gt", "self")
@@ -98,11 +96,7 @@ def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: i
         print(f"finetune {name}: " + ", ".join(f"{n} {means[n]['aae_deg']:.2f}/{means[n]['inclination_deg']:.2f}"
                                                for n in list(ckpts) + [best]), flush=True)
     result = {"finetune": rows, "k": int(k), "modes": list(modes), "overrides": list(overrides)}
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "finetune.json").write_text(json.dumps(jsonable(result), indent=1))
-        (out / "finetune.md").write_text(markdown(result))
+    write_result(out, "finetune", result, markdown(result))
     return result
 
 
@@ -132,16 +126,9 @@ def markdown(result: Mapping[str, Any]) -> str:
 
 def finetune_main(cfg) -> Dict[str, Any]:
     """``scripts/benchmark.py finetune``: the ``finetune`` section of ``conf/benchmark.yaml``."""
-    from omegaconf import OmegaConf
+    from .lodo import section_and_datasets
 
-    t = OmegaConf.to_container(cfg.get("finetune") or {}, resolve=True)
-    data_cfgs: Dict[str, Mapping] = {}
-    for d in list(t.get("datasets") or DATASETS):
-        c = OmegaConf.to_container(OmegaConf.load(CONF / "data" / f"{d}.yaml"), resolve=True)
-        if not Path(c["root"]).is_dir():
-            warnings.warn(f"finetune: {d} data not found at {c['root']}, skipped")
-            continue
-        data_cfgs[d] = c
+    t, data_cfgs = section_and_datasets(cfg, "finetune")
     out = Path(cfg.get("out") or "runs/benchmark/finetune")
     res = finetune(data_cfgs, Path(t.get("lodo_runs") or "runs/lodo"), Path(t.get("runs") or "runs/finetune"),
                    int(t.get("k") or 2), list(t.get("modes") or MODES), list(t.get("overrides") or []),

@@ -19,10 +19,9 @@ from __future__ import annotations
 import json
 import warnings
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Any, Dict, Mapping, Optional, Sequence
 
-from .evaluate.runner import jsonable
-from .transfer import METRICS, score_cell
+from .transfer import METRICS, score_cell, write_result
 
 DATASETS = ("broad", "euroc", "tumvi", "oxiod")
 BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick", "eskf", "robust_eskf", "riann")
@@ -130,12 +129,9 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
         print(f"lodo {name} ({len(seqs)} rec.): general {g['aae_deg']:.2f}/{g['inclination_deg']:.2f}, best classical "
               f"{cell['best']} {b.get('aae_deg', float('nan')):.2f}, own "
               f"{'-' if own is None else format(own['aae_deg'], '.2f')}", flush=True)
-    result = {"lodo": rows, "axes": axes, "experiment": experiment, "overrides": list(overrides), "baselines": list(baselines)}
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "lodo.json").write_text(json.dumps(jsonable(result), indent=1))
-        (out / "lodo.md").write_text(markdown(result))
+    result = {"lodo": rows, "axes": axes, "experiment": experiment, "overrides": list(overrides),
+              "baselines": list(baselines)}
+    write_result(out, "lodo", result, markdown(result))
     return result
 
 
@@ -166,18 +162,26 @@ def markdown(result: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def lodo_main(cfg) -> Dict[str, Any]:
-    """``scripts/benchmark.py lodo``: the ``lodo`` section of ``conf/benchmark.yaml``."""
+def section_and_datasets(cfg, section: str):
+    """A benchmark mode's section of ``conf/benchmark.yaml`` as a dict, and {dataset: its data
+    config} for its ``datasets`` (default :data:`DATASETS`), those absent under ``../shared``
+    skipped with a warning."""
     from omegaconf import OmegaConf
 
-    t = OmegaConf.to_container(cfg.get("lodo") or {}, resolve=True)
+    t = OmegaConf.to_container(cfg.get(section) or {}, resolve=True)
     data_cfgs: Dict[str, Mapping] = {}
     for d in list(t.get("datasets") or DATASETS):
         c = OmegaConf.to_container(OmegaConf.load(CONF / "data" / f"{d}.yaml"), resolve=True)
         if not Path(c["root"]).is_dir():
-            warnings.warn(f"lodo: {d} data not found at {c['root']}, skipped")
+            warnings.warn(f"{section}: {d} data not found at {c['root']}, skipped")
             continue
         data_cfgs[d] = c
+    return t, data_cfgs
+
+
+def lodo_main(cfg) -> Dict[str, Any]:
+    """``scripts/benchmark.py lodo``: the ``lodo`` section of ``conf/benchmark.yaml``."""
+    t, data_cfgs = section_and_datasets(cfg, "lodo")
     out = Path(cfg.get("out") or "runs/benchmark/lodo")
     res = lodo(data_cfgs, Path(t.get("runs") or "runs/lodo"), str(t.get("experiment") or "general6_res"),
                list(t.get("overrides") or []), list(t.get("baselines") or BASELINES), bool(t.get("train", True)),

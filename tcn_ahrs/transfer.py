@@ -29,6 +29,16 @@ BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick")
 METRICS = ("aae_deg", "inclination_deg")
 
 
+def write_result(out: Optional[Path], stem: str, result: Mapping[str, Any], md: str) -> None:
+    """``<stem>.json`` and ``<stem>.md`` in ``out`` (created; nothing written when None)."""
+    if out is None:
+        return
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{stem}.json").write_text(json.dumps(jsonable(result), indent=1))
+    (out / f"{stem}.md").write_text(md)
+
+
 def cell_recordings(data_cfg: Mapping, own: bool) -> Optional[str]:
     """The split a checkpoint is scored on: ``test`` on its own dataset (None when empty), the
     simulator's ``test``, another dataset's ``trainval``."""
@@ -116,11 +126,7 @@ def transfer(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], baselin
                       f" (incl. {cell['best_inclination_deg']:.2f})", flush=True)
         table[label] = row
     result = {"matrix": table, "baselines": list(baselines), "metrics": list(METRICS)}
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "transfer.json").write_text(json.dumps(jsonable(result), indent=1))
-        (out / "transfer.md").write_text(markdown(result))
+    write_result(out, "transfer", result, markdown(result))
     return result
 
 
