@@ -7,26 +7,12 @@
 
 A killed run resumes: each fold's training continues from its last.ckpt, finished folds are
 reused (crossval.retrain=true trains them again).
+
+Same as ``tcn-ahrs crossval ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/crossval.py``.
 """
 import sys
-from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
-
-
-@hydra.main(version_base="1.3", config_path="../conf", config_name="crossval")
-@user_errors
-def main(cfg: DictConfig) -> None:
-    from tcn_ahrs.crossval import crossval_main
-
-    crossval_main(cfg)
-
+from tcn_ahrs.cli import main
 
 if __name__ == "__main__":
-    check_overrides("crossval")  # a config error as one line with the nearest key (exit 2)
-    main()
+    main(["crossval", *sys.argv[1:]])

@@ -6,26 +6,12 @@
     python scripts/evaluate.py ckpt=PATH data=generic data.root=DIR data.split=all out=DIR
 
 Writes results.json, results.md, plots and TUM trajectories to ``out`` (conf/evaluate.yaml).
+
+Same as ``tcn-ahrs evaluate ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/evaluate.py``.
 """
 import sys
-from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
-
-
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
-@user_errors
-def main(cfg: DictConfig) -> None:
-    from tcn_ahrs.evaluate.main import evaluate_main
-
-    evaluate_main(cfg)
-
+from tcn_ahrs.cli import main
 
 if __name__ == "__main__":
-    check_overrides("evaluate")  # a config error as one line with the nearest key (exit 2)
-    main()
+    main(["evaluate", *sys.argv[1:]])

@@ -8,42 +8,13 @@ Loading the result needs only torch:
     m = torch.jit.load("FILE.pt");  quat, omega = m(imu, dt, q0);  print(m.metadata())
     s = torch.jit.load("FILE_streaming.pt");  s.reset(q0);  quat, omega = s.step(sample, dt)
 
-Configuration: conf/export.yaml; the contract is in tcn_ahrs/export.py's docstring.
+Configuration: tcn_ahrs/conf/export.yaml; the contract is in tcn_ahrs/export.py's docstring.
+
+Same as ``tcn-ahrs export ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/export.py``.
 """
 import sys
-from pathlib import Path
 
-import hydra
-from omegaconf import DictConfig
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
-
-KEYS = {"ckpt", "out", "mode", "rate", "net_dtype", "overwrite"}
-
-
-@hydra.main(version_base="1.3", config_path="../conf", config_name="export")
-@user_errors
-def main(cfg: DictConfig) -> None:
-    from tcn_ahrs.export import export_checkpoint, read_metadata
-
-    unknown = set(cfg) - KEYS
-    if unknown:
-        raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")
-    if not cfg.ckpt or not cfg.out:
-        raise ValueError("export: pass ckpt=PATH (a checkpoint written by scripts/train.py) and out=FILE.pt")
-    written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
-                                rate_hz=None if cfg.rate is None else float(cfg.rate),
-                                net_dtype=str(cfg.net_dtype), overwrite=bool(cfg.get("overwrite", False)))
-    for mode, path in written.items():
-        md = read_metadata(path)
-        print(f"{mode}: {path}  ({md['variant']}, {md['axes']}-axis, preintegration {md['preintegration']}, "
-              f"receptive field {md['receptive_field']}, rate "
-              f"{'{:g}-{:g}'.format(*md['rate_range_hz']) if md.get('rate_range_hz') else md['rate_hz']} Hz, "
-              f"checkpoint sha256 {md['checkpoint_sha256'][:12]}...)")
-
+from tcn_ahrs.cli import main
 
 if __name__ == "__main__":
-    check_overrides("export")  # a config error as one line with the nearest key (exit 2)
-    main()
+    main(["export", *sys.argv[1:]])

@@ -1,154 +1,122 @@
-"""The scripts' error contract: a user error (bad data, config, checkpoint or path: every
-``ValueError`` — :class:`~tcn_ahrs.sequence.DataError`, ``CheckpointError``, ``ExportError`` —
-and ``OSError``) prints one line ``error: <message>`` on stderr and exits with status 2;
-``HYDRA_FULL_ERROR=1`` shows the traceback instead. Anything else is a bug and keeps its traceback.
+"""The command line: ``tcn-ahrs COMMAND [key=value ...]`` (also ``python -m tcn_ahrs``, and
+``python scripts/COMMAND.py`` in a checkout).
+
+    tcn-ahrs train experiment=broad9_res data.fold=0
+    tcn-ahrs evaluate data=generic data.root=DIR data.split=all
+    tcn-ahrs export ckpt=checkpoints/broad9.ckpt out=model.pt
+    tcn-ahrs benchmark transfer
+
+Each command is one Hydra app on a main config shipped in the package (``tcn_ahrs/conf/``), so an
+installed wheel runs anywhere; overrides are checked first (a misspelt key is one line with the
+nearest valid key, exit 2) and user errors follow :mod:`tcn_ahrs.app`'s contract.
 """
 from __future__ import annotations
 
-import functools
-import os
-import shutil
+import difflib
+import importlib
 import sys
-import time
-from contextlib import contextmanager
-from pathlib import Path
-from typing import Iterator, List, Optional
+from typing import Callable, Dict, List, NamedTuple, Optional
 
-EXIT_USER_ERROR = 2
-
-
-def user_errors(main):
-    """Decorator for a script's Hydra task function (put it below ``@hydra.main``)."""
-
-    @functools.wraps(main)
-    def wrapper(*args, **kwargs):
-        try:
-            return main(*args, **kwargs)
-        except (ValueError, OSError) as e:
-            if os.environ.get("HYDRA_FULL_ERROR") == "1":
-                raise
-            print(f"error: {e}\n(HYDRA_FULL_ERROR=1 shows the traceback)", file=sys.stderr)
-            raise SystemExit(EXIT_USER_ERROR) from None
-
-    return wrapper
+from .app import EXIT_USER_ERROR, check_overrides, user_errors
+from .app import leaf_keys, output_dir, refuse_earlier_output, staged_output  # noqa: F401  TEMP re-export until importers move to .app
+from .conf import SEARCH_PATH
 
 
-def output_dir(explicit: Optional[str], fallback: Path) -> Path:
-    """Where a script writes: ``explicit`` (``out=``/``run_dir=``), else Hydra's run directory
-    of this job, else ``fallback/<date_time>`` (called outside Hydra, e.g. from a test)."""
-    if explicit:
-        return Path(str(explicit))
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        return Path(HydraConfig.get().runtime.output_dir)
-    except Exception:  # noqa: BLE001 - no Hydra job
-        return Path(fallback) / time.strftime("%Y-%m-%d_%H-%M-%S")
+class Command(NamedTuple):
+    config: str   # main config in tcn_ahrs/conf/
+    target: str   # "module:function" taking the composed config
+    summary: str
 
 
-def _earlier_entries(folder: Path) -> List[str]:
-    """What a folder holds besides Hydra's own files of this job (``.hydra/``, ``*.log``)."""
-    return sorted(p.name for p in folder.iterdir() if p.name != ".hydra" and p.suffix != ".log")
+COMMANDS: Dict[str, Command] = {
+    "train": Command("train", "tcn_ahrs.train:train_main",
+                     "train a model, then evaluate it on held-out recordings"),
+    "evaluate": Command("evaluate", "tcn_ahrs.evaluate.main:evaluate_main",
+                        "score a checkpoint (default: the general model) beside classical filters"),
+    "export": Command("export", "tcn_ahrs.export:export_main",
+                      "a checkpoint as a self-contained deployment file"),
+    "compare": Command("compare", "tcn_ahrs.compare:compare_main",
+                       "every classical filter (and a checkpoint) on one dataset"),
+    "benchmark": Command("benchmark", "tcn_ahrs.cli:benchmark_main",
+                         "accuracy | speed | transfer | lodo | finetune"),
+    "crossval": Command("crossval", "tcn_ahrs.crossval:crossval_main",
+                        "nested leave-recordings-out folds of a recipe"),
+    "reproduce": Command("reproduce", "tcn_ahrs.reproduce:reproduce_main",
+                         "a navigation paper's tables (paper=...)"),
+    "inspect": Command("inspect_data", "tcn_ahrs.datasets.inspect:inspect_main",
+                       "per-recording summary of a data split"),
+}
+
+BENCHMARK_MODES = {
+    "accuracy": "tcn_ahrs.compare:benchmark_accuracy_main",
+    "transfer": "tcn_ahrs.transfer:transfer_main",
+    "lodo": "tcn_ahrs.lodo:lodo_main",
+    "finetune": "tcn_ahrs.finetune:finetune_main",
+    "speed": "tcn_ahrs.bench:main",
+}
 
 
-def refuse_earlier_output(out, overwrite: bool = False, what: str = "output") -> Path:
-    """``out`` as a Path; ValueError if it is a file, or a folder holding an earlier run's files
-    and not ``overwrite`` (called before the work starts, and again by :func:`staged_output`)."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{what}: out={out} exists and is not a folder")
-    if out.is_dir() and not overwrite:
-        earlier = _earlier_entries(out)
-        if earlier:
-            raise ValueError(f"{what}: out={out} already holds an earlier run's files ({', '.join(earlier[:4])}"
-                             f"{', ...' if len(earlier) > 4 else ''}): choose a new out= or pass overwrite=true "
-                             "(replaces them when this run completes)")
-    return out
+def _resolve(target: str) -> Callable:
+    module, name = target.split(":")
+    return getattr(importlib.import_module(module), name)
 
 
-@contextmanager
-def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterator[Path]:
-    """A run's output folder, written as a whole or not at all: the body writes into a hidden
-    sibling ``.<name>.partial`` (a killed run leaves only that, removed by the next run), which
-    replaces ``out`` when the body returns. An ``out`` that already holds an earlier run's files
-    is refused unless ``overwrite`` (then they are replaced, none kept beside the new ones).
-    Hydra's files of the current job (``.hydra/``, its log) move into the new folder."""
-    out = refuse_earlier_output(out, overwrite, what)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = out.parent / f".{out.name}.partial"
-    if stage.exists():
-        shutil.rmtree(stage)  # a killed earlier run's leftovers
-    stage.mkdir()
-    try:
-        yield stage
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    if out.is_dir():
-        old = out.parent / f".{out.name}.old"
-        if old.exists():
-            shutil.rmtree(old)
-        out.rename(old)
-        stage.rename(out)
-        for p in old.iterdir():
-            if p.name == ".hydra" or p.suffix == ".log":
-                p.rename(out / p.name)
-        shutil.rmtree(old)
-    else:
-        stage.rename(out)
+def benchmark_main(cfg) -> None:
+    """``tcn-ahrs benchmark MODE``: the mode's function (imported only for that mode)."""
+    mode = str(cfg.mode)
+    if mode not in BENCHMARK_MODES:
+        raise ValueError(f"benchmark: unknown mode {mode!r}; expected one of {', '.join(BENCHMARK_MODES)}")
+    _resolve(BENCHMARK_MODES[mode])(cfg)
 
 
-def leaf_keys(cfg, prefix: str = "") -> List[str]:
-    """Every leaf of a config as a dotted key (``train.epochs``)."""
-    from omegaconf import DictConfig
+def _mode_as_override(args: List[str]) -> List[str]:
+    """``benchmark MODE ...`` -> ``benchmark mode=MODE ...`` (Hydra rejects bare words)."""
+    if args and not args[0].startswith("-") and "=" not in args[0]:
+        mode = args[0]
+        if mode not in BENCHMARK_MODES:
+            _usage_error(f"benchmark: unknown mode {mode!r}; expected one of {', '.join(BENCHMARK_MODES)}")
+        return [f"mode={mode}", *args[1:]]
+    return args
 
-    out = []
-    for k, v in cfg.items():
-        out += leaf_keys(v, f"{prefix}{k}.") if isinstance(v, DictConfig) else [f"{prefix}{k}"]
-    return out
+
+def usage() -> str:
+    width = max(map(len, COMMANDS))
+    lines = ["usage: tcn-ahrs COMMAND [key=value ...]   (tcn-ahrs COMMAND --help: its config)", "", "commands:"]
+    lines += [f"  {name:<{width}}  {c.summary}" for name, c in COMMANDS.items()]
+    return "\n".join(lines)
 
 
-def check_overrides(config_name: str, argv: Optional[List[str]] = None, conf_dir=None) -> None:
-    """Compose ``config_name`` with the command line's ``key=value`` overrides before Hydra does:
-    a misspelt key, a missing group option or a bad value becomes the scripts' one-line error
-    (exit 2) with the nearest valid key or option, instead of Hydra's multi-line report (exit 1).
-    Arguments Hydra handles itself (``--cfg``, ``-m``, ``hydra.*``) are left to it. ``conf_dir``:
-    the scripts' config folder (default: ``conf/`` beside the running script's folder, as their
-    ``@hydra.main(config_path="../conf")``); without one, Hydra reports as usual."""
-    import difflib
-    import re
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    if any(a.startswith("-") for a in args):
-        return
-    overrides = [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]
-    if not overrides:
-        return
-    from hydra import compose, initialize_config_dir
-
-    conf = Path(conf_dir) if conf_dir is not None else Path(sys.argv[0]).resolve().parent.parent / "conf"
-    if not (conf / f"{config_name}.yaml").is_file():
-        return
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        try:
-            compose(config_name, overrides=overrides)
-            return
-        except Exception as e:  # noqa: BLE001 - Hydra and OmegaConf raise many types
-            text = str(e)
-    if os.environ.get("HYDRA_FULL_ERROR") == "1":
-        return  # Hydra reports it with the traceback
-    first = text.strip().splitlines()[0] if text.strip() else "invalid override"
-    hint = ""
-    m = re.search(r"full_key: (\S+)", text) or re.search(r"Could not override '([^']+)'", text)
-    group = re.search(r"Could not find '([^/']+)/([^']+)'", text)
-    if group:
-        options = re.findall(r"^\t(\S+)$", text, flags=re.M)
-        near = difflib.get_close_matches(group.group(2), options, n=1)
-        hint = f" (did you mean {group.group(1)}={near[0]}?)" if near else f" (options: {', '.join(options)})"
-    elif m:
-        with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-            keys = leaf_keys(compose(config_name, overrides=[o for o in overrides if not o.startswith(m.group(1) + "=")]))
-        near = difflib.get_close_matches(m.group(1), keys, n=1, cutoff=0.6)
-        hint = f" (did you mean {near[0]!r}?)" if near else ""
-    print(f"error: {config_name} config: {first}{hint}\n(HYDRA_FULL_ERROR=1 shows Hydra's report)", file=sys.stderr)
+def _usage_error(message: str) -> None:
+    print(f"error: {message}\n{usage()}", file=sys.stderr)
     raise SystemExit(EXIT_USER_ERROR)
+
+
+def main(argv: Optional[List[str]] = None) -> None:
+    """Run ``argv`` (default: the process's arguments) = ``[COMMAND, overrides...]``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help", "help"):
+        print(usage())
+        return
+    name, args = argv[0], argv[1:]
+    if name not in COMMANDS:
+        near = difflib.get_close_matches(name, COMMANDS, n=1)
+        _usage_error(f"unknown command {name!r}" + (f" (did you mean {near[0]!r}?)" if near else ""))
+    command = COMMANDS[name]
+    if name == "benchmark":
+        args = _mode_as_override(args)
+    check_overrides(command.config, args)
+    target = command.target
+
+    def task(cfg) -> None:
+        _resolve(target)(cfg)
+
+    import hydra
+
+    app = hydra.main(version_base="1.3", config_path=SEARCH_PATH, config_name=command.config)(user_errors(task))
+    # Hydra reads sys.argv; the job keeps the command's name (its log file, ${hydra:job.name})
+    sys.argv = [f"tcn-ahrs {name}", *args, f"hydra.job.name={command.config}"]
+    app()
+
+
+if __name__ == "__main__":
+    main()

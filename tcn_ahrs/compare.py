@@ -296,7 +296,9 @@ def _tune_data_cfg(cfg):
         return cfg.data
     from omegaconf import OmegaConf
 
-    path = Path(__file__).resolve().parents[1] / "conf" / "data" / f"{name}.yaml"
+    from .conf import CONF_DIR
+
+    path = CONF_DIR / "data" / f"{name}.yaml"
     if not path.is_file():
         raise ValueError(f"tune_data: no data config {name!r} (expected conf/data/{name}.yaml)")
     dc = OmegaConf.load(path)

@@ -12,6 +12,7 @@ import torch
 
 from tcn_ahrs import so3
 from tcn_ahrs.filters import backbone as bb
+from tcn_ahrs.conf import CONF_DIR
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "datasets"
 
@@ -31,7 +32,7 @@ def _real(name):
     data, rec = name.split(":")
     if not (SHARED / data).is_dir():
         pytest.skip(f"needs ../shared/datasets/{data}")
-    cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "data" / f"{data}.yaml")
+    cfg = OmegaConf.load(CONF_DIR / "data" / f"{data}.yaml")
     cfg.root = str(SHARED / data)
     cfg.train = [rec]
     cfg.fold = None

@@ -7,6 +7,7 @@ import torch
 
 from tcn_ahrs.export import export_batch, export_streaming
 from tcn_ahrs.model.ahrs import LearnedAHRS
+from tcn_ahrs.conf import CONF_DIR
 
 N = 120
 RATE = 100.0
@@ -373,7 +374,7 @@ def test_training_a_folder_without_a_train_list_says_what_to_set(tmp_path):
     from tcn_ahrs.train import train_main
 
     _recording(tmp_path)  # tmp_path/rec.csv
-    conf = __import__("pathlib").Path(__file__).resolve().parents[1] / "conf"
+    conf = CONF_DIR
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose("train", overrides=["data=generic", f"data.root={tmp_path}", f"run_dir={tmp_path / 'run'}",
                                           "threads=1"])

@@ -371,7 +371,7 @@ def test_tune_on_shipped_training_data_and_evaluate_on_an_own_folder(tmp_path, m
                header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z,quat_w,quat_x,quat_y,quat_z")
     seen = {}
     monkeypatch.setattr(cmp, "compare", lambda ev, tu, **kw: seen.update(ev=ev, tu=tu) or {"methods": {}})
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = CONF_DIR
     base = ["data=generic", f"data.root={tmp_path}", "data.split=all", "tune=true", "methods=[raw]", "peers=false",
             f"out={tmp_path / 'out'}"]
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
@@ -424,7 +424,7 @@ def test_a_new_filter_is_one_file_and_one_config_entry(config, tmp_path, monkeyp
     np.savetxt(tmp_path / "mine.csv", np.column_stack([seq.time, seq.gyro, seq.accel, seq.mag, seq.quat]),
                delimiter=",", comments="", fmt="%.10g",
                header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z,quat_w,quat_x,quat_y,quat_z")
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = CONF_DIR
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(config, overrides=["data=generic", f"data.root={tmp_path}", "data.split=all", "peers=false",
                                          "plugins=[my_hold_filter]", f"out={tmp_path / 'out'}"])
@@ -461,6 +461,7 @@ METRIC_PLUGIN = '''"""A metric of one's own: this file and `plugins=[...]`."""
 import numpy as np
 
 from tcn_ahrs.metrics import attitude_errors, register_metric
+from tcn_ahrs.conf import CONF_DIR
 
 
 @register_metric("p95_deg", "P95")
@@ -490,7 +491,7 @@ def test_a_new_dataset_and_a_new_metric_are_one_file_and_one_config_entry(config
         seq = simulate("fast_rotation", 20.0, 50.0, seed=seed)
         np.savez(rec / f"run{seed}.npz", t=seq.time, gyro=seq.gyro, accel=seq.accel, mag=seq.mag, quat=seq.quat,
                  rate=seq.rate)
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = CONF_DIR
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(config, overrides=["data=generic", "data.name=npz_folder", f"data.root={rec}", "data.split=all",
                                          "peers=false", "methods=[raw,ecf]", "plugins=[my_p95]",

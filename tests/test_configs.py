@@ -7,9 +7,10 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from tcn_ahrs.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+CONF = CONF_DIR
 
 
 def _compose(name, overrides=()):
@@ -63,10 +64,9 @@ def test_script_key_checks_accept_their_own_yaml():
     assert top(_compose("compare")) <= COMPARE_KEYS
     assert top(_compose("benchmark")) <= BENCHMARK_KEYS
     assert top(_compose("evaluate")) <= EVAL_KEYS
-    spec = importlib.util.spec_from_file_location("export_script", REPO / "scripts" / "export.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    assert top(_compose("export")) <= mod.KEYS
+    from tcn_ahrs.export import KEYS as EXPORT_KEYS
+
+    assert top(_compose("export")) <= EXPORT_KEYS
     assert _compose("inspect_data").data.name
 
 

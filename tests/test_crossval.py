@@ -8,8 +8,9 @@ from hydra import compose, initialize_config_dir
 
 from tcn_ahrs.crossval import crossval_main, summarize
 from tcn_ahrs.datasets.simulate import simulate
+from tcn_ahrs.conf import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 
 
 def _write(path: Path, seq):

@@ -13,6 +13,7 @@ from tcn_ahrs import so3
 from tcn_ahrs.data import SequenceStore, augment_sensor, balanced_starts
 from tcn_ahrs.losses import increment_loss, self_labels, trust_labels
 from tcn_ahrs.sequence import DataError, ImuSequence
+from tcn_ahrs.conf import CONF_DIR
 
 
 def _sim(rate=100.0, count=2, duration=20.0, seed_offset=0):
@@ -188,7 +189,7 @@ def _compose(overrides):
 
     from hydra import compose, initialize_config_dir
 
-    conf = Path(__file__).resolve().parents[1] / "conf"
+    conf = CONF_DIR
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         return compose("train", overrides=overrides)
 

@@ -9,8 +9,9 @@ from tcn_ahrs import so3
 from tcn_ahrs.model.ahrs import LearnedAHRS
 from tcn_ahrs.model.ecf import acc_error, mag_error, previous_attitude
 from tcn_ahrs.model.tcn import TCN
+from tcn_ahrs.conf import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 G = 9.81
 MAG_NAV = torch.tensor([0.0, 20.0, -40.0], dtype=torch.float64)  # north + down (ENU), uT
 

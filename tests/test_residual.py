@@ -16,8 +16,9 @@ from tcn_ahrs.filters.common import magnetic_from_nav
 from tcn_ahrs.losses import trust_labels
 from tcn_ahrs.model.ahrs import LearnedAHRS
 from tcn_ahrs.sequence import ImuSequence
+from tcn_ahrs.conf import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "model"
+CONF = CONF_DIR / "model"
 
 
 def residual_model(axes: int, **residual) -> LearnedAHRS:

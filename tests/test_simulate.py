@@ -13,8 +13,9 @@ from tcn_ahrs import so3
 from tcn_ahrs.conventions import DEG, GRAVITY
 from tcn_ahrs.datasets import simulate as sim
 from tcn_ahrs.sequence import ImuSequence
+from tcn_ahrs.conf import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[1] / "conf" / "data" / "simulated.yaml"
+CONF = CONF_DIR / "data" / "simulated.yaml"
 
 
 def _rot(seq: ImuSequence) -> np.ndarray:

@@ -14,10 +14,11 @@ import tcn_ahrs.datasets as ds
 from tcn_ahrs.conventions import GRAVITY
 from tcn_ahrs.datasets import format_summary_table, gt_gaps, load_split, split_recording, summarize
 from tcn_ahrs.sequence import DataError, ImuSequence
+from tcn_ahrs.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "datasets"
-CONF = REPO / "conf" / "data"
+CONF = CONF_DIR / "data"
 
 BROAD_TEST = ["05", "09", "15", "26", "30", "35"]
 BROAD_TRAIN = ["01", "02", "04", "06", "07", "08", "10", "11", "14", "18", "24", "28", "29", "32", "33", "36"]
@@ -245,7 +246,7 @@ def test_bad_fold_index_is_a_clear_error(generic_root):
 
 @pytest.mark.parametrize("name", ["broad", "euroc", "tumvi", "oxiod"])
 def test_shipped_folds_cover_training_recordings_once(name):
-    c = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "data" / f"{name}.yaml")
+    c = OmegaConf.load(CONF_DIR / "data" / f"{name}.yaml")
     held = [r for f in c.folds for r in f]
     assert sorted(held) == sorted(c.train), f"{name}: every training recording in exactly one fold"
     assert not set(held) & set(c.test or [])

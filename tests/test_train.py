@@ -17,9 +17,10 @@ from tcn_ahrs.checkpoint import CheckpointError, atomic_save, check_layout, load
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.estimators.learned import LearnedEstimator
 from tcn_ahrs.train import train_main
+from tcn_ahrs.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+CONF = CONF_DIR
 TINY = ["data=generic", "train.epochs=2", "train.window=400", "train.stride=200", "train.batch_size=4",
         "model.tcn.channels=[4,4,4,8]", "trainer.enable_progress_bar=false", "eval.plots=false",
         "eval.trajectories=false", "eval.baselines=[]", "threads=1"]

@@ -11,8 +11,9 @@ from tcn_ahrs.checkpoint import atomic_save, layout_meta
 from tcn_ahrs.transfer import cell_recordings, markdown, transfer
 
 from test_residual import residual_model
+from tcn_ahrs.conf import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 
 
 def test_cell_recordings():

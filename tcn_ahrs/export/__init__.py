@@ -67,7 +67,7 @@ from .fused import _hamilton_table, fuse_model, quat_cumprod, quat_integrate
 from .inputs import ExportError
 from .open_loop import NET_DTYPES, BatchAHRS, StreamingAHRS
 
-__all__ = ["export_batch", "export_streaming", "export_checkpoint", "read_metadata", "build_metadata",
+__all__ = ["export_main", "export_batch", "export_streaming", "export_checkpoint", "read_metadata", "build_metadata",
            "file_sha256", "streaming_path", "ExportError", "BatchAHRS", "StreamingAHRS", "ClosedLoopBatch",
            "ClosedLoopStreaming", "fuse_model", "quat_cumprod", "quat_integrate", "MODES", "NET_DTYPES",
            "CHANNELS", "_hamilton_table"]
@@ -260,3 +260,26 @@ def read_metadata(path) -> Dict[str, Any]:
     extra = {"metadata.json": ""}
     torch.jit.load(str(path), _extra_files=extra)
     return json.loads(extra["metadata.json"])
+
+
+KEYS = {"ckpt", "out", "mode", "rate", "net_dtype", "overwrite"}
+
+
+def export_main(cfg) -> Dict[str, Path]:
+    """``tcn-ahrs export ckpt=PATH out=FILE.pt [mode=batch|streaming|both] [rate=HZ]``
+    (``conf/export.yaml``): writes the files and prints one line per file from its metadata."""
+    unknown = set(cfg) - KEYS
+    if unknown:
+        raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")
+    if not cfg.ckpt or not cfg.out:
+        raise ValueError("export: pass ckpt=PATH (a checkpoint written by tcn-ahrs train) and out=FILE.pt")
+    written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
+                                rate_hz=None if cfg.rate is None else float(cfg.rate),
+                                net_dtype=str(cfg.net_dtype), overwrite=bool(cfg.get("overwrite", False)))
+    for mode, path in written.items():
+        md = read_metadata(path)
+        rate = "{:g}-{:g}".format(*md["rate_range_hz"]) if md.get("rate_range_hz") else md["rate_hz"]
+        print(f"{mode}: {path}  ({md['variant']}, {md['axes']}-axis, preintegration {md['preintegration']}, "
+              f"receptive field {md['receptive_field']}, rate {rate} Hz, "
+              f"checkpoint sha256 {md['checkpoint_sha256'][:12]}...)")
+    return written

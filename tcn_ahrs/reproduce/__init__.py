@@ -1,4 +1,4 @@
-"""One entry point for every paper's experiment: ``python scripts/reproduce.py paper=<name>``.
+"""One entry point for every paper's experiment: ``tcn-ahrs reproduce paper=<name>``.
 
 Each experiment is one module here with ``main(cfg, out) -> results`` (cfg: its
 ``conf/paper/<name>.yaml``), printing the paper's table with the paper's numbers beside ours and
@@ -22,3 +22,14 @@ def run(name: str, cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
     if name not in papers():
         raise ValueError(f"paper: unknown experiment {name!r}; expected one of {papers()}")
     return importlib.import_module(f"{__name__}.{name}").main(cfg, Path(out))
+
+
+def reproduce_main(cfg) -> Dict[str, Any]:
+    """``tcn-ahrs reproduce paper=<name>``: the experiment with its config, written to ``out`` (else
+    Hydra's run folder, else ``runs/reproduce/<name>/<time>``)."""
+    from omegaconf import OmegaConf
+
+    from ..app import output_dir
+
+    paper = OmegaConf.to_container(cfg.paper, resolve=True)
+    return run(str(paper["name"]), paper, output_dir(cfg.get("out"), Path("runs/reproduce") / str(paper["name"])))

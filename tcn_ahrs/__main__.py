@@ -1,0 +1,4 @@
+"""``python -m tcn_ahrs COMMAND ...`` = ``tcn-ahrs COMMAND ...``."""
+from .cli import main
+
+main()

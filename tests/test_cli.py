@@ -1,0 +1,91 @@
+"""The command line (``tcn-ahrs COMMAND``, tcn_ahrs/cli.py) and the installed wheel: configs ship in
+the package, so ``tcn-ahrs evaluate`` runs from outside the repository."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tcn_ahrs import cli
+from tcn_ahrs.conf import CONF_DIR
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_every_command_has_its_main_config_and_target():
+    import importlib
+
+    for name, command in cli.COMMANDS.items():
+        assert (CONF_DIR / f"{command.config}.yaml").is_file(), name
+        module, func = command.target.split(":")
+        assert callable(getattr(importlib.import_module(module), func)), command.target
+    for mode, target in cli.BENCHMARK_MODES.items():
+        module, func = target.split(":")
+        assert callable(getattr(importlib.import_module(module), func)), mode
+
+
+def test_scripts_are_thin_wrappers_of_the_commands():
+    """Each scripts/<command>.py runs ``tcn_ahrs.cli.main`` with its command: one code path."""
+    for command in cli.COMMANDS.values():
+        text = (REPO / "scripts" / f"{command.config}.py").read_text()
+        assert "from tcn_ahrs.cli import main" in text and "hydra.main" not in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["trian"], "unknown command 'trian' (did you mean 'train'?)"),
+    (["benchmark", "sped"], "benchmark: unknown mode 'sped'"),
+    (["train", "train.epoch=3"], "did you mean 'train.epochs'?"),
+    (["evaluate", "data=nope"], "Could not find 'data/nope'"),
+])
+def test_user_errors_are_one_line_with_exit_2(argv, message, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    assert e.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_no_command_prints_the_commands(capsys):
+    cli.main([])
+    out = capsys.readouterr().out
+    assert all(name in out for name in cli.COMMANDS)
+
+
+@pytest.mark.slow
+def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
+    """Build the wheel from the sources, install it into an empty folder (no editable install, no
+    checkout on the path) and run ``tcn-ahrs evaluate`` there on the built-in simulator: the
+    configs must come from inside the wheel."""
+    src = tmp_path / "src"
+    src.mkdir()
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "pyproject.toml", "README.md", "tcn_ahrs"],
+                           cwd=REPO, capture_output=True, text=True, check=True).stdout.split()
+    if not files:
+        pytest.skip("not a git checkout")
+    for f in files:
+        if (REPO / f).is_file():
+            (src / f).parent.mkdir(parents=True, exist_ok=True)
+            (src / f).write_bytes((REPO / f).read_bytes())
+    dist = tmp_path / "dist"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
+                    "-q", "-w", str(dist), str(src)], check=True, capture_output=True)
+    wheel = next(dist.glob("tcn_ahrs-*.whl"))
+    site = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "-q", "--target", str(site),
+                    str(wheel)], check=True, capture_output=True)
+    assert (site / "tcn_ahrs" / "conf" / "data" / "simulated.yaml").is_file()
+
+    work = tmp_path / "elsewhere"
+    work.mkdir()
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    where = subprocess.run([sys.executable, "-c", "import tcn_ahrs; print(tcn_ahrs.__file__)"], cwd=work, env=env,
+                           capture_output=True, text=True, check=True).stdout.strip()
+    assert where.startswith(str(site)), where  # the wheel's copy, not the checkout
+    out = work / "eval"
+    run = subprocess.run([str(site / "bin" / "tcn-ahrs"), "evaluate", f"ckpt={REPO / 'checkpoints' / 'broad9.ckpt'}",
+                          "data=simulated", "data.split=test", f"out={out}", "plots=false", "trajectories=false"],
+                         cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    results = json.loads((out / "results.json").read_text())
+    assert results, "evaluate wrote no results"
