@@ -93,8 +93,10 @@ def transfer_summary(result: Mapping[str, Any]) -> str:
     other_ok, other_n = tally["other"]
     lines += ["", f"Mean AAE (inclination) in degrees, learned vs the best classical filter on the same "
                   f"recordings (lowest mean AAE of {baselines}; in brackets the lowest inclination of any of "
-                  f"them); ✓ = never worse in both. *Italics*: the checkpoint's own dataset, its visible "
-                  f"test split; other cells: datasets it never saw, all their training recordings. "
+                  f"them); ✓ = never worse in both. *Italics*: the checkpoint's own dataset, its test split "
+                  f"(training never saw it); other cells: datasets it never saw, all their training "
+                  f"recordings; trained on it: its own dataset has no visible test split (its nested "
+                  f"folds are in [docs/results.md](docs/results.md)); –: a 9-axis checkpoint on 6-axis data. "
                   f"Never worse in {own_ok + other_ok} of {own_n + other_n} cells: {own_ok} of {own_n} on "
                   f"its own data, {other_ok} of {other_n} on data it never saw. "
                   f"Source: [{TRANSFER_JSON}]({TRANSFER_JSON}) (`python scripts/benchmark.py transfer`)."]
