@@ -1,4 +1,4 @@
-"""The README's never-worse table from nested cross-validation results.
+"""The never-worse table of docs/results.md (nested folds) from nested cross-validation results.
 
     python scripts/nested_table.py runs/nested/broad9/crossval.json runs/nested/euroc6/crossval.json ...
 

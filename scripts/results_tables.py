@@ -1,0 +1,187 @@
+"""The generated tables of README.md and docs/results.md, rendered from the runs' JSON.
+
+    python scripts/results_tables.py            # rewrite every generated block from its JSON
+    python scripts/results_tables.py --check    # exit 1 if a block differs from what its JSON gives
+
+A number measured by a run is written once: in that run's JSON summary, committed under
+``docs/results/json/`` (``runs/`` itself is not committed). Each table that quotes it is a
+*generated block* in a markdown file, between the markers
+
+    <!-- generated:NAME begin -->
+    ...
+    <!-- generated:NAME end -->
+
+and this script is the only writer of what lies between them. To refresh a table: run the
+command that produced the JSON, copy its JSON over the committed one, run this script, commit.
+
+Blocks (:data:`BLOCKS`):
+
+``transfer_matrix`` (docs/results.md)
+    The cross-dataset matrix, ``python scripts/benchmark.py transfer`` →
+    ``runs/benchmark/transfer/transfer.json``, rendered by the very function that writes the
+    run's own ``transfer.md`` (:func:`tcn_ahrs.transfer.markdown`).
+``transfer_summary`` (README.md)
+    The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
+    (inclination) beside the best classical filter on the same recordings, and whether it is
+    never worse (the ``never_worse`` the run computed).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+from pathlib import Path
+from typing import Any, Callable, Dict, List, Mapping, NamedTuple, Tuple
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # this checkout's package, not another installed copy
+    sys.path.insert(0, str(REPO))
+
+from tcn_ahrs import transfer as _transfer  # noqa: E402
+
+TRANSFER_JSON = "docs/results/json/transfer.json"
+
+
+# ------------------------------------------------------------------------------- renderings
+def transfer_matrix(result: Mapping[str, Any]) -> str:
+    """The full matrix: exactly the run's own ``transfer.md``."""
+    return _transfer.markdown(result)
+
+
+def _own(row: Mapping[str, Any]) -> List[str]:
+    return _transfer.own_datasets(str(row["trained_on"]))
+
+
+def _cell(c: Mapping[str, Any]) -> str:
+    """``learned AAE (incl.) vs best classical AAE (lowest classical incl.)`` and ✓/✗."""
+    l, b = c["learned"], c["best_metrics"] or {}
+    mark = "✓" if c["never_worse"] else "✗"
+    return (f"{l['aae_deg']:.2f} ({l['inclination_deg']:.2f}) vs "
+            f"{b.get('aae_deg', float('nan')):.2f} ({c['best_inclination_deg']:.2f}) {mark}")
+
+
+def transfer_summary(result: Mapping[str, Any]) -> str:
+    """The README's table: one row per checkpoint, one column per dataset. A cell on the
+    checkpoint's own dataset (its visible test split) is in italics; ``trained on it``: its own
+    dataset without a visible test split (its nested folds are in docs/results.md); ``–``: a
+    9-axis checkpoint on 6-axis data."""
+    matrix = result["matrix"]
+    names = [d for d in _transfer.DATASETS if any(d in row for row in matrix.values())]
+    lines = ["| checkpoint | " + " | ".join(names) + " | never worse |", "|---" * (len(names) + 2) + "|"]
+    tally = {"own": [0, 0], "other": [0, 0]}
+    for label, row in matrix.items():
+        own = _own(row)
+        cells, ok, n = [], 0, 0
+        for d in names:
+            c = row.get(d)
+            if c is None:
+                cells.append("–")
+            elif "skipped" in c:
+                cells.append("trained on it")
+            else:
+                text = _cell(c)
+                kind = "own" if d in own else "other"
+                cells.append(f"*{text}*" if kind == "own" else text)
+                ok += bool(c["never_worse"])
+                n += 1
+                tally[kind][0] += bool(c["never_worse"])
+                tally[kind][1] += 1
+        lines.append(f"| {label} ({row['axes']}-axis) | " + " | ".join(cells) + f" | {ok} of {n} |")
+    baselines = ", ".join(str(b) for b in result.get("baselines", []))
+    own_ok, own_n = tally["own"]
+    other_ok, other_n = tally["other"]
+    lines += ["", f"Mean AAE (inclination) in degrees, learned vs the best classical filter on the same "
+                  f"recordings (lowest mean AAE of {baselines}; in brackets the lowest inclination of any of "
+                  f"them); ✓ = never worse in both. *Italics*: the checkpoint's own dataset, its test split "
+                  f"(training never saw it); other cells: datasets it never saw, all their training "
+                  f"recordings; trained on it: its own dataset has no visible test split (its nested "
+                  f"folds are in [docs/results.md](docs/results.md)); –: a 9-axis checkpoint on 6-axis data. "
+                  f"Never worse in {own_ok + other_ok} of {own_n + other_n} cells: {own_ok} of {own_n} on "
+                  f"its own data, {other_ok} of {other_n} on data it never saw. "
+                  f"Source: [{TRANSFER_JSON}]({TRANSFER_JSON}) (`python scripts/benchmark.py transfer`)."]
+    return "\n".join(lines) + "\n"
+
+
+class Block(NamedTuple):
+    source: str                                 # the JSON, relative to the repository root
+    render: Callable[[Mapping[str, Any]], str]  # JSON -> markdown
+    files: Tuple[str, ...]                      # where the block stands
+
+
+BLOCKS: Dict[str, Block] = {
+    "transfer_summary": Block(TRANSFER_JSON, transfer_summary, ("README.md",)),
+    "transfer_matrix": Block(TRANSFER_JSON, transfer_matrix, ("docs/results.md",)),
+}
+
+
+# ------------------------------------------------------------------------------- the blocks
+def _markers(name: str) -> Tuple[str, str]:
+    return f"<!-- generated:{name} begin -->", f"<!-- generated:{name} end -->"
+
+
+def render(name: str, repo: Path = REPO) -> str:
+    """Block ``name`` as its JSON gives it (the text between the markers, newline-framed)."""
+    b = BLOCKS[name]
+    result = json.loads((Path(repo) / b.source).read_text())
+    return "\n" + b.render(result).strip("\n") + "\n"
+
+
+def read_block(text: str, name: str) -> str:
+    """The text between ``name``'s markers in ``text`` (ValueError when they are missing or
+    not exactly once each)."""
+    begin, end = _markers(name)
+    if text.count(begin) != 1 or text.count(end) != 1 or text.index(begin) > text.index(end):
+        raise ValueError(f"expected the markers {begin!r} ... {end!r} exactly once, in that order")
+    return text[text.index(begin) + len(begin):text.index(end)]
+
+
+def write_block(text: str, name: str, content: str) -> str:
+    begin, end = _markers(name)
+    read_block(text, name)
+    return text[:text.index(begin) + len(begin)] + content + text[text.index(end):]
+
+
+def generated_blocks(text: str) -> List[str]:
+    """Names of every generated block in ``text``."""
+    return re.findall(r"<!-- generated:(\S+) begin -->", text)
+
+
+def update(repo: Path = REPO, check: bool = False) -> List[str]:
+    """Rewrite (or with ``check`` only compare) every block; returns ``file: block`` for each one
+    that differed (or whose markers are missing)."""
+    stale: List[str] = []
+    for name, b in BLOCKS.items():
+        want = render(name, repo)
+        for f in b.files:
+            p = Path(repo) / f
+            text = p.read_text()
+            try:
+                have = read_block(text, name)
+            except ValueError as e:
+                stale.append(f"{f}: {name}: {e}")
+                continue
+            if have != want:
+                stale.append(f"{f}: {name}")
+                if not check:
+                    p.write_text(write_block(text, name, want))
+    return stale
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--check", action="store_true", help="exit 1 if a block differs from its JSON; write nothing")
+    args = ap.parse_args(argv)
+    stale = update(REPO, check=args.check)
+    for s in stale:
+        print(("differs from its JSON: " if args.check else "rewritten: ") + s)
+    missing = [s for s in stale if ": expected the markers" in s]
+    if args.check and stale or missing:
+        return 1
+    if not stale:
+        print("every generated block equals its JSON")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
