@@ -99,7 +99,7 @@ def transfer_summary(result: Mapping[str, Any]) -> str:
                   f"folds are in [docs/results.md](docs/results.md)); –: a 9-axis checkpoint on 6-axis data. "
                   f"Never worse in {own_ok + other_ok} of {own_n + other_n} cells: {own_ok} of {own_n} on "
                   f"its own data, {other_ok} of {other_n} on data it never saw. "
-                  f"Source: [{TRANSFER_JSON}]({TRANSFER_JSON}) (`python scripts/benchmark.py transfer`)."]
+                  f"Source: [{TRANSFER_JSON}]({TRANSFER_JSON}) (`tcn-ahrs benchmark transfer`)."]
     return "\n".join(lines) + "\n"
 
 

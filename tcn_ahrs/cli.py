@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import os
 import sys
 from typing import Callable, Dict, List, NamedTuple, Optional
 
@@ -46,6 +47,8 @@ COMMANDS: Dict[str, Command] = {
     "inspect": Command("inspect_data", "tcn_ahrs.datasets.inspect:inspect_main",
                        "per-recording summary of a data split"),
 }
+
+COMMAND_ENV = "TCN_AHRS_COMMAND"
 
 BENCHMARK_MODES = {
     "accuracy": "tcn_ahrs.compare:benchmark_accuracy_main",
@@ -94,6 +97,8 @@ def _usage_error(message: str) -> None:
 def main(argv: Optional[List[str]] = None) -> None:
     """Run ``argv`` (default: the process's arguments) = ``[COMMAND, overrides...]``."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and "=" in argv[0] and os.environ.get(COMMAND_ENV) in COMMANDS:
+        argv = [os.environ[COMMAND_ENV], *argv]  # a re-run child (below)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(usage())
         return
@@ -113,8 +118,12 @@ def main(argv: Optional[List[str]] = None) -> None:
     import hydra
 
     app = hydra.main(version_base="1.3", config_path=SEARCH_PATH, config_name=command.config)(user_errors(task))
-    # Hydra reads sys.argv; the job keeps the command's name (its log file, ${hydra:job.name})
-    sys.argv = [f"tcn-ahrs {name}", *args, f"hydra.job.name={command.config}"]
+    # Hydra reads its overrides from sys.argv[1:]. Lightning's DDP launcher starts each worker by
+    # running sys.argv again (plus its own overrides): the program stays argv[0] and the command
+    # word travels in the environment, so `tcn-ahrs train trainer=ddp` and `python -m tcn_ahrs
+    # train ...` re-run as themselves. (The job's name, e.g. its log file, is set in each main config.)
+    os.environ[COMMAND_ENV] = name
+    sys.argv = [sys.argv[0], *args]
     app()
 
 

@@ -89,3 +89,12 @@ def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     results = json.loads((out / "results.json").read_text())
     assert results, "evaluate wrote no results"
+
+
+def test_a_rerun_child_takes_its_command_from_the_environment(monkeypatch, capsys):
+    """Lightning's DDP launcher re-runs ``sys.argv`` (program + overrides, no command word): the
+    command comes from ``TCN_AHRS_COMMAND``, which the parent set."""
+    monkeypatch.setenv(cli.COMMAND_ENV, "evaluate")
+    with pytest.raises(SystemExit) as e:
+        cli.main(["data=nope"])
+    assert e.value.code == 2 and "evaluate config" in capsys.readouterr().err

@@ -19,6 +19,7 @@ from tcn_ahrs.estimators.classical import ESEKF, Madgwick
 from tcn_ahrs.evaluate import evaluate
 from tcn_ahrs.sequence import ImuSequence
 from tcn_ahrs.tuning import tune_grid
+from tcn_ahrs.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -298,18 +299,14 @@ def test_baseline_estimators_registry():
     assert [e.axes for e in baseline_estimators(["mahony6d"])] == [6]
 
 
-def test_benchmark_dispatcher_mode_argument(monkeypatch):
-    spec = importlib.util.spec_from_file_location("benchmark_script", REPO / "scripts" / "benchmark.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    argv = ["benchmark.py", "accuracy", "data=broad"]
-    mod._mode_from_argv(argv)
-    assert argv == ["benchmark.py", "mode=accuracy", "data=broad"]
-    argv = ["benchmark.py", "data=broad"]
-    mod._mode_from_argv(argv)
-    assert argv == ["benchmark.py", "data=broad"]
-    with pytest.raises(SystemExit, match="unknown mode 'sped'"):
-        mod._mode_from_argv(["benchmark.py", "sped"])
+def test_benchmark_dispatcher_mode_argument(capsys):
+    from tcn_ahrs.cli import _mode_as_override
+
+    assert _mode_as_override(["accuracy", "data=broad"]) == ["mode=accuracy", "data=broad"]
+    assert _mode_as_override(["data=broad"]) == ["data=broad"]
+    with pytest.raises(SystemExit) as e:
+        _mode_as_override(["sped"])
+    assert e.value.code == 2 and "unknown mode 'sped'" in capsys.readouterr().err
 
 
 def test_parameter_sets_batched_equal_separate_runs(sims):
@@ -461,7 +458,6 @@ METRIC_PLUGIN = '''"""A metric of one's own: this file and `plugins=[...]`."""
 import numpy as np
 
 from tcn_ahrs.metrics import attitude_errors, register_metric
-from tcn_ahrs.conf import CONF_DIR
 
 
 @register_metric("p95_deg", "P95")

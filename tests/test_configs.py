@@ -1,7 +1,6 @@
 """Every config file composes and instantiates: each primary config with its defaults, every
 experiment / model / trainer option with train.yaml, and each script's key check accepts what
 its YAML declares (a key added to a YAML but not to the code, or misspelt, fails here)."""
-import importlib.util
 from pathlib import Path
 
 import pytest

@@ -185,8 +185,6 @@ def test_own_model_is_the_mean_over_recordings_of_its_nested_folds(tmp_path):
 
 
 def _compose(overrides):
-    from pathlib import Path
-
     from hydra import compose, initialize_config_dir
 
     conf = CONF_DIR

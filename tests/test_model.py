@@ -1,6 +1,5 @@
 """The learned AHRS model: calibration identity at init, causal TCN, parameter count, ECF signs,
 variants from the config files."""
-from pathlib import Path
 
 import pytest
 import torch

@@ -3,7 +3,6 @@ the residuals stay within their bounds, and the trust labels read the ground tru
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import torch

@@ -3,7 +3,6 @@ model of Eqs. 9-11, determinism, splits."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest

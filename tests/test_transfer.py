@@ -2,7 +2,6 @@
 cell end to end on the simulator with an untrained residual checkpoint (= the backbone)."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 from omegaconf import OmegaConf

@@ -19,15 +19,17 @@ def safe_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("_") or "unnamed"
 
 
-def write_tum(path, time: np.ndarray, quat: np.ndarray) -> None:
-    """TUM trajectory file for ``evo``: one line ``t x y z qx qy qz qw`` per sample, positions 0,
-    attitude ``nav_from_body`` (w,x,y,z) reordered to scalar-last; a ``#`` header line."""
+def write_tum(path, time: np.ndarray, quat: np.ndarray, pos: Optional[np.ndarray] = None) -> None:
+    """The one TUM trajectory writer (read by ``evo``): one line ``t x y z qx qy qz qw`` per sample,
+    attitude ``nav_from_body`` (w,x,y,z) reordered to scalar-last, positions ``pos`` (N, 3) m in
+    the navigation frame (0 for an attitude-only estimate); a ``#`` header line."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     q = np.asarray(quat, dtype=np.float64)
     t = np.asarray(time, dtype=np.float64)
-    data = np.column_stack([t, np.zeros((len(t), 3)), q[:, 1], q[:, 2], q[:, 3], q[:, 0]])
-    np.savetxt(path, data, fmt=["%.9f", "%d", "%d", "%d", "%.9f", "%.9f", "%.9f", "%.9f"],
+    xyz = np.zeros((len(t), 3)) if pos is None else np.asarray(pos, dtype=np.float64)
+    data = np.column_stack([t, xyz, q[:, 1], q[:, 2], q[:, 3], q[:, 0]])
+    np.savetxt(path, data, fmt=["%.9f"] + (["%d"] * 3 if pos is None else ["%.9f"] * 3) + ["%.9f"] * 4,
                header="t x y z qx qy qz qw", comments="# ")
 
 

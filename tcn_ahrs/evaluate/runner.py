@@ -1,4 +1,5 @@
-"""The one evaluation runner: estimators x recordings -> metrics (see the package docstring)."""
+"""The one evaluation runner: estimators x recordings -> metrics (see the package docstring); the
+artefacts (JSON, tables, plots, TUM trajectories) are written afterwards by :func:`write_artefacts`."""
 from __future__ import annotations
 
 import json
@@ -101,10 +102,6 @@ def evaluate(
     if dataset is None:
         dataset = str(sequences[0].meta.get("dataset", "")) if sequences else ""
 
-    out = Path(out_dir) if out_dir is not None else None
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-
     methods: Dict[str, dict] = {n: {"recordings": []} for n in names}
     # The view of each recording the estimators get (axes=6: no magnetometer) and the initial
     # attitudes; an estimator with ``axes == 6`` (e.g. a 6D peer/filter column on 9-axis data)
@@ -120,11 +117,7 @@ def evaluate(
             views.append(seq)
     inits = [initial_state(seq) for seq in sequences]
     k0s, q0s = [k for k, _ in inits], [q for _, q in inits]
-    if out is not None and trajectories:
-        for seq in sequences:
-            valid = seq.quat_valid
-            write_tum(out / "trajectories" / "groundtruth" / f"{safe_name(seq.name)}.txt",
-                      seq.time[valid], seq.quat[valid])
+    estimates: Dict[str, List[tuple]] = {n: [] for n in names}  # (quat, signals) per recording
     for est in estimators:
         est_views = [v.without_mag() if (getattr(est, "axes", None) == 6 and v.has_mag) else v for v in views]
         heading_free = bool(getattr(est, "heading_free", False))
@@ -161,12 +154,7 @@ def evaluate(
             if verbose:
                 print(f"{est.name:>20s} {seq.name:<45s} AAE {m['aae_deg']:8.3f}  AYE {m['aye_deg']:8.3f}  "
                       f"incl {m['inclination_deg']:8.3f}", file=sys.stderr)
-            if out is not None and plots:
-                plot_recording(out / "plots" / safe_name(est.name) / f"{safe_name(seq.name)}.png",
-                               seq, quat, est.name, res.signals, align=align)
-            if out is not None and trajectories:
-                write_tum(out / "trajectories" / safe_name(est.name) / f"{safe_name(seq.name)}.txt",
-                          seq.time, quat)
+            estimates[est.name].append((quat, res.signals))
         batched = None
 
     for name, mres in methods.items():
@@ -179,10 +167,33 @@ def evaluate(
         mres["groups"] = {g: _mean_metrics(r) for g, r in groups.items()}
 
     results = {"dataset": dataset, "align": bool(align), "recordings": rec_names, "methods": methods}
-    if out is not None:
-        (out / "results.json").write_text(json.dumps(results, indent=2))
-        (out / "results.md").write_text(results_markdown(results))
+    if out_dir is not None:
+        write_artefacts(out_dir, results, sequences, estimates, plots=plots, trajectories=trajectories, align=align)
     return results
+
+
+def write_artefacts(out_dir, results: dict, sequences: Sequence[ImuSequence], estimates: Dict[str, List[tuple]],
+                    plots: bool = True, trajectories: bool = True, align: bool = True) -> None:
+    """What :func:`evaluate` computed, written afterwards: results.json / results.md, and per
+    method and recording a plot (``plots/<method>/<recording>.png``) and a TUM trajectory
+    (``trajectories/<method>/<recording>.txt``, ground truth under ``groundtruth/``).
+    ``estimates``: {method: [(quat (N, 4), signals dict or None) per recording]}."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if trajectories:
+        for seq in sequences:
+            valid = seq.quat_valid
+            write_tum(out / "trajectories" / "groundtruth" / f"{safe_name(seq.name)}.txt",
+                      seq.time[valid], seq.quat[valid])
+    for method, runs in estimates.items():
+        for seq, (quat, signals) in zip(sequences, runs):
+            if plots:
+                plot_recording(out / "plots" / safe_name(method) / f"{safe_name(seq.name)}.png",
+                               seq, quat, method, signals, align=align)
+            if trajectories:
+                write_tum(out / "trajectories" / safe_name(method) / f"{safe_name(seq.name)}.txt", seq.time, quat)
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    (out / "results.md").write_text(results_markdown(results))
 
 
 def load_results(path) -> dict:

@@ -267,7 +267,7 @@ KEYS = {"ckpt", "out", "mode", "rate", "net_dtype", "overwrite"}
 
 def export_main(cfg) -> Dict[str, Path]:
     """``tcn-ahrs export ckpt=PATH out=FILE.pt [mode=batch|streaming|both] [rate=HZ]``
-    (``conf/export.yaml``): writes the files and prints one line per file from its metadata."""
+    (``tcn_ahrs/conf/export.yaml``): writes the files and prints one line per file from its metadata."""
     unknown = set(cfg) - KEYS
     if unknown:
         raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")

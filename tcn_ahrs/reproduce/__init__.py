@@ -1,14 +1,39 @@
 """One entry point for every paper's experiment: ``tcn-ahrs reproduce paper=<name>``.
 
 Each experiment is one module here with ``main(cfg, out) -> results`` (cfg: its
-``conf/paper/<name>.yaml``), printing the paper's table with the paper's numbers beside ours and
+``tcn_ahrs/conf/paper/<name>.yaml``), printing the paper's table with the paper's numbers beside ours and
 writing results.json, results.md, trajectories and plots to ``out``.
 """
 from __future__ import annotations
 
 import importlib
 from pathlib import Path
-from typing import Any, Dict, List, Mapping
+from typing import Any, Dict, List, Mapping, Sequence
+
+
+def write_report(out: Path, result: Dict[str, Any], md: str, drop: Sequence[str] = ()) -> Dict[str, Any]:
+    """The one results tail of every experiment: ``results.json`` (``result`` without the keys in
+    ``drop`` at any depth, arrays as lists), ``results.md`` (``md``), ``md`` on stdout and where it
+    went on stderr. Returns ``result`` unchanged."""
+    import json
+    import sys
+
+    import numpy as np
+
+    def strip(x):
+        if isinstance(x, dict):
+            return {k: strip(v) for k, v in x.items() if k not in drop}
+        if isinstance(x, (list, tuple)):
+            return [strip(v) for v in x]
+        return x.tolist() if isinstance(x, (np.ndarray, np.generic)) else x
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps(strip(result), indent=1))
+    (out / "results.md").write_text(md)
+    print(md)
+    print(f"written to {out}", file=sys.stderr)
+    return result
 
 
 def papers() -> List[str]:

@@ -1,7 +1,7 @@
 """The odometry paper's experiment (``es-ekf-imu-encoder-magnetometer``, its Table 2): ES-EKF,
 EKF and UKF on the same simulated drives, absolute position error (APE) by ``evo``.
 
-``python scripts/reproduce.py paper=es_ekf_odometry`` (options: ``conf/paper/es_ekf_odometry.yaml``)
+``python scripts/reproduce.py paper=es_ekf_odometry`` (options: ``tcn_ahrs/conf/paper/es_ekf_odometry.yaml``)
 
 Scenarios (each over seeded runs of :func:`tcn_ahrs.nav.diff_drive.simulate_drive`):
 
@@ -20,7 +20,6 @@ mean and std of each over the runs.
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -31,6 +30,8 @@ from typing import Any, Dict, List, Mapping, Sequence
 import numpy as np
 import torch
 
+from . import write_report
+from ..evaluate.files import write_tum
 from ..nav.diff_drive import Robot, Sensors, simulate_drive
 from ..nav.odometry import OdometryNoise, odometry_eskf
 from ..nav.odometry_baselines import odometry_filter
@@ -115,16 +116,6 @@ def ape(sim: dict, est: Dict[str, np.ndarray]) -> Dict[str, Any]:
     return {"stats": stats, "error": np.asarray(m.error)}
 
 
-def write_tum(path: Path, sim: dict, est: Dict[str, np.ndarray]) -> None:
-    from evo.core.trajectory import PoseTrajectory3D
-    from evo.tools import file_interface
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    file_interface.write_tum_trajectory_file(
-        str(path), PoseTrajectory3D(positions_xyz=est["pos"], orientations_quat_wxyz=est["quat"],
-                                    timestamps=sim["time"]))
-
-
 def run_scenario(name: str, cfg: Mapping[str, Any], seeds: Sequence[int], out: Path, workers: int) -> Dict[str, Any]:
     rate, length = float(cfg["rate"]), float(cfg["length"])
     sensors = scenario_sensors(name, cfg)
@@ -158,12 +149,13 @@ def run_scenario(name: str, cfg: Mapping[str, Any], seeds: Sequence[int], out: P
     runs: Dict[str, list] = {f: [] for f in FILTERS}
     errors: Dict[str, list] = {f: [] for f in FILTERS}
     for i, (seed, sim) in enumerate(zip(seeds, sims)):
-        write_tum(out / "trajectories" / name / f"seed{seed}" / "groundtruth.txt", sim, sim)
+        write_tum(out / "trajectories" / name / f"seed{seed}" / "groundtruth.txt", sim["time"], sim["quat"], sim["pos"])
         for f in FILTERS:
             a = ape(sim, est[f][i])
             runs[f].append(a["stats"])
             errors[f].append(a["error"])
-            write_tum(out / "trajectories" / name / f"seed{seed}" / f"{f.replace(' ', '_')}.txt", sim, est[f][i])
+            write_tum(out / "trajectories" / name / f"seed{seed}" / f"{f.replace(' ', '_')}.txt", sim["time"],
+                      est[f][i]["quat"], est[f][i]["pos"])
     summary = {f: {k: {"mean": float(np.mean([r[k] for r in runs[f]])), "std": float(np.std([r[k] for r in runs[f]], ddof=1))
                        if len(runs[f]) > 1 else 0.0} for k in STATS + EXTRA} for f in FILTERS}
     if cfg.get("plots", True):
@@ -247,10 +239,4 @@ def main(cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
         result["scenarios"][str(name)] = sc
         print(f"scenario {name}: {sc['time_s']} s", file=sys.stderr)
     result["time_s"] = round(time.perf_counter() - t0, 1)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(result, indent=1))
-    md = markdown(result) + f"\nTotal wall time {result['time_s']} s.\n"
-    (out / "results.md").write_text(md)
-    print(md)
-    print(f"written to {out}", file=sys.stderr)
-    return result
+    return write_report(out, result, markdown(result) + f"\nTotal wall time {result['time_s']} s.\n")

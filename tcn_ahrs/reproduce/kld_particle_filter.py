@@ -2,7 +2,7 @@
 localisation with a fixed particle count and with KLD-sampling, on the simulated arena of
 :mod:`tcn_ahrs.nav.arena`.
 
-``python scripts/reproduce.py paper=kld_particle_filter`` (options: ``conf/paper/kld_particle_filter.yaml``)
+``python scripts/reproduce.py paper=kld_particle_filter`` (options: ``tcn_ahrs/conf/paper/kld_particle_filter.yaml``)
 
 * The report's table: the robot drives a rectangle ``laps`` times steered by the filter; the mean
   deviation of the true end pose from the start pose (m, deg) and the mean update time, for the
@@ -14,7 +14,6 @@ localisation with a fixed particle count and with KLD-sampling, on the simulated
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -25,6 +24,7 @@ from typing import Any, Dict, Mapping
 import numpy as np
 import torch
 
+from . import write_report
 from ..nav.arena import Arena, Robot, Scanner, drive_rectangle
 from ..nav.particle import LikelihoodField, Mcl, MclParams, low_variance_resample, sample_motion
 
@@ -290,16 +290,4 @@ def main(cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
     if cfg.get("plots", True):
         plots(out / "plots", res["evaluation"], res["global_kidnap"], arena, cfg)
     res["time_s"] = round(time.perf_counter() - t0, 1)
-    md = markdown(res)
-    out.mkdir(parents=True, exist_ok=True)
-
-    def strip(x):
-        if isinstance(x, dict):
-            return {k: strip(v) for k, v in x.items() if k not in ("run", "err", "counts", "clouds")}
-        return x
-
-    (out / "results.json").write_text(json.dumps(strip(res), indent=1))
-    (out / "results.md").write_text(md)
-    print(md)
-    print(f"written to {out}", file=sys.stderr)
-    return res
+    return write_report(out, res, markdown(res), drop=("run", "err", "counts", "clouds"))

@@ -2,7 +2,7 @@
 Tables 1-2 and Figs. 3-4): switching an INS/GNSS filter from the geographic (n) frame to the grid
 (G) frame with and without the covariance transformation.
 
-``python scripts/reproduce.py paper=polar_ins_gnss`` (options: ``conf/paper/polar_ins_gnss.yaml``)
+``python scripts/reproduce.py paper=polar_ins_gnss`` (options: ``tcn_ahrs/conf/paper/polar_ins_gnss.yaml``)
 
 Flights (:mod:`tcn_ahrs.nav.polar_sim`, great circles, navigation-grade IMU at 200 Hz, GNSS 1 Hz):
 
@@ -21,7 +21,6 @@ error; seeds differ in all three.
 """
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ from typing import Any, Dict, List, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from . import write_report
 from ..nav import earth
 from ..nav.ins import InsNoise, InsState, initial_cov, navigate
 from ..nav.polar_sim import DEG_PER_H, UG, Flight, ImuGrade, simulate_flight
@@ -249,17 +249,5 @@ def main(cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
     if cfg.get("plots", True):
         plots(out / "plots", result)
     result["time_s"] = round(time.perf_counter() - t0, 1)
-    md = markdown(result)
-    out.mkdir(parents=True, exist_ok=True)
-
-    def strip(x):
-        if isinstance(x, dict):
-            return {k: strip(v) for k, v in x.items() if k not in ("series", "t")}
-        return x.tolist() if isinstance(x, np.ndarray) else x
-
-    (out / "results.json").write_text(json.dumps(strip(result), indent=1))
-    (out / "results.md").write_text(md)
-    print(md)
-    print(f"written to {out}", file=sys.stderr)
-    return result
+    return write_report(out, result, markdown(result), drop=("series", "t"))
 

@@ -2,7 +2,7 @@
 positioning with the plain complementary Kalman filter (CKF) and the adaptive-robust one (ARCKF),
 on the simulated trolley of :mod:`tcn_ahrs.nav.uwb_sim`.
 
-``python scripts/reproduce.py paper=uwb_arckf`` (options: ``conf/paper/uwb_arckf.yaml``)
+``python scripts/reproduce.py paper=uwb_arckf`` (options: ``tcn_ahrs/conf/paper/uwb_arckf.yaml``)
 
 * Table 4 (adaptivity): Route 1 (rectangle, two laps) with 1-4 single-sample 50 dBW accelerometer
   outliers; horizontal RMSE per filter.
@@ -24,7 +24,6 @@ ranges, 3-D beacons without the floor constraint, beacon dropouts and accelerome
 """
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -36,6 +35,7 @@ import numpy as np
 import torch
 
 from .. import so3
+from . import write_report
 from ..nav.uwb import UwbParams, arckf, posterior_crlb
 from ..nav.uwb_sim import UwbSetup, simulate_uwb, static_init
 
@@ -359,10 +359,4 @@ def main(cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
     if cfg.get("plots", True):
         plots(out / "plots", t4, t6, cfg, bounds)
     res["time_s"] = round(time.perf_counter() - t0, 1)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps(res, indent=1))
-    md = markdown(res)
-    (out / "results.md").write_text(md)
-    print(md)
-    print(f"written to {out}", file=sys.stderr)
-    return res
+    return write_report(out, res, markdown(res))
