@@ -101,8 +101,12 @@ def test_a_classical_filter_is_one_module_and_one_config(plugin_dirs):
             default_grid: ClassVar[Dict[str, list]] = {"gyro_scale": [0.9, 1.0, 1.1]}
 
             def _filter(self, gyro, accel, dt, q0, mag, p):
-                inc = so3.quat_exp(p["gyro_scale"] * gyro[..., 1:, :] * dt[..., 1:, None])
-                return {"quat": so3.cumprod_quat(torch.cat([q0[..., None, :], inc], -2))}
+                # gyro (R, N, 3), dt (R, N), q0 (R, 4); a parameter is a scalar, or (P, 1) when the
+                # tuner batches P values: the outputs then lead with (P, R)
+                s = p["gyro_scale"]
+                inc = so3.quat_exp(s.reshape(s.shape + (1, 1)) * gyro[..., 1:, :] * dt[..., 1:, None])
+                first = q0[..., None, :].expand(inc.shape[:-2] + (1, 4))
+                return {"quat": so3.cumprod_quat(torch.cat([first, inc], -2))}
         ''')
     write(conf / "plugin" / "scaled_gyro.yaml", '''
         # @package _global_
@@ -127,6 +131,11 @@ def test_a_classical_filter_is_one_module_and_one_config(plugin_dirs):
     for a, b in zip(ours["recordings"], raw["recordings"]):
         assert a["aae_deg"] == pytest.approx(b["aae_deg"], rel=1e-6, abs=1e-9)
     assert 0.0 < ours["mean"]["aae_deg"] < 10.0
+    # and the tuner batches its grid like a built-in's: the true scale (1) wins
+    from tcn_ahrs.tuning import tune_method
+
+    best, ranked = tune_method("scaled_gyro", 9, recordings())
+    assert best == {"gyro_scale": 1.0} and len(ranked) == 3
 
 
 # ------------------------------------------------------------------------------------- dataset
@@ -177,6 +186,13 @@ def test_a_dataset_is_one_module_and_one_data_config(plugin_dirs, tmp_path):
     assert [s.name for s in test] == ["walk2"] and len(test[0]) == 200 and test[0].has_mag
     assert [len(s) for s in train] == [150, 150] and [len(s) for s in val] == [50, 50]
     assert not six[0].has_mag
+    # the scripts' early override check (python scripts/train.py hydra.searchpath=[file://...]
+    # data=npz_walks) finds it too, and names it for a misspelt option
+    from tcn_ahrs.cli import check_overrides
+
+    check_overrides("train", [f"hydra.searchpath=[file://{conf}]", "data=npz_walks"], conf_dir=CONF_DIR)
+    with pytest.raises(SystemExit):
+        check_overrides("train", [f"hydra.searchpath=[file://{conf}]", "data=npz_walk"], conf_dir=CONF_DIR)
 
 
 # -------------------------------------------------------------------------------------- metric
