@@ -276,6 +276,12 @@ def test_a_model_variant_is_one_network_module_and_one_model_config(plugin_dirs)
     assert cal["gyro"].shape == (1, len(seq), 3) and torch.isfinite(cal["gyro"]).all()
     # the error term starts at the bias set above (the network's weights act on a moving mean)
     assert cal["gyro_error"].abs().max() > 0
+    # and the variant is an estimator like any checkpoint: the evaluation runner scores it
+    from tcn_ahrs.estimators.learned import LearnedEstimator
+    from tcn_ahrs.evaluate.runner import evaluate
+
+    res = evaluate([LearnedEstimator(model, name="moving mean")], recordings(1, duration=3.0))
+    assert np.isfinite(res["methods"]["moving mean"]["mean"]["aae_deg"])
     with pytest.raises(ValueError, match="cannot import"):
         with compose("train", conf, ["model=moving_mean", "model.gyro_net=newcomer_nets.Missing"]) as cfg:
             LearnedAHRS.from_config(OmegaConf.to_container(cfg.model, resolve=True), axes=9)
