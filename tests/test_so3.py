@@ -49,13 +49,17 @@ def test_log_matches_scipy_and_roundtrip():
     np.testing.assert_allclose(so3.exp(so3.log(t64(r))).numpy(), r, atol=ROTATION_F64)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=["float64", "float32"])
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 0.5, math.pi / 2, math.pi - 1e-4, math.pi])
-def test_log_exp_roundtrip_special_angles(angle):
+def test_log_exp_roundtrip_special_angles(angle, dtype):
     axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
     r = Rotation.from_rotvec(axis * angle).as_matrix()
-    back = so3.exp(so3.log(t64(r))).numpy()
-    np.testing.assert_allclose(back, r, atol=ROTATION_F64)
-    assert abs(np.linalg.norm(so3.log(t64(r)).numpy()) - angle) < ANGLE_F64
+    rt = torch.as_tensor(np.broadcast_to(r, (2, 3, 3, 3)).copy(), dtype=dtype)  # a (2, 3) batch
+    back = so3.exp(so3.log(rt)).double().numpy()
+    np.testing.assert_allclose(back, np.broadcast_to(r, back.shape), **tol(dtype, "rotation"))
+    via_quat = so3.quat_to_matrix(so3.quat_exp(so3.quat_log(so3.matrix_to_quat(rt)))).double().numpy()
+    np.testing.assert_allclose(via_quat, np.broadcast_to(r, back.shape), **tol(dtype, "rotation"))
+    assert np.abs(np.linalg.norm(so3.log(rt).double().numpy(), axis=-1) - angle).max() < atol(dtype, "angle")
 
 
 def test_quaternions_match_scipy():
