@@ -75,7 +75,7 @@ class Calibration(nn.Module):
 
     Args:
         axes:        6 (gyro, acc) or 9 (gyro, acc, mag).
-        gyro_net, acc_net, mag_net: "tcn" | "constant" | "none".
+        gyro_net, acc_net, mag_net: "tcn" | "constant" | "none" | an importable "module.Class" (:func:`_error_net`).
         gyro_input:  "all" (Eq. 15: every sensor feeds the gyro network) or "gyro".
         error_scale: multiplies each network's output (a dimensionless O(1) output maps to a
                      physical error of this size: rad/s, m/s^2, uT); keeps the first Adam steps
