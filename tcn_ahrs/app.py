@@ -127,6 +127,8 @@ def check_overrides(config_name: str, argv: Optional[List[str]] = None, conf_dir
     overrides = [a for a in args if "=" in a and not a.lstrip("+~").startswith("hydra")]
     if not overrides:
         return
+    # config folders of one's own (hydra.searchpath=[file://my_conf]) hold options the overrides name
+    overrides += [a for a in args if a.startswith("hydra.searchpath=")]
     from hydra import compose, initialize_config_dir
 
     from .conf import CONF_DIR

@@ -11,6 +11,7 @@ from tcn_ahrs import so3
 from tcn_ahrs.filters.mahony import mahony
 from tcn_ahrs.model.ahrs import LearnedAHRS
 from tcn_ahrs.model.closed_loop import _scan, closed_loop_scan, rest_detector
+from tolerances import EXACT_F32, atol
 
 G = 9.81
 NO_REST = {"rest_gyro": 0.0}  # the rest detector never fires
@@ -112,8 +113,7 @@ def test_scripted_scan_equals_python_scan(dtype):
     # the rotation state stays a rotation
     rot = _scan(*args)[0]
     eye = torch.eye(3, dtype=dtype).expand(rot.shape)
-    tol = 1e-4 if dtype == torch.float32 else 1e-12
-    assert (rot.transpose(-1, -2) @ rot - eye).abs().max() < tol
+    assert (rot.transpose(-1, -2) @ rot - eye).abs().max() < atol(dtype, "rotation")
 
 
 def test_gyro_error_term_starts_at_the_bias_seen_at_rest():
@@ -130,7 +130,7 @@ def test_gyro_error_term_starts_at_the_bias_seen_at_rest():
     imu = torch.as_tensor(np.concatenate([seq.gyro, seq.accel, seq.mag], 1), dtype=torch.float32)[None]
     with torch.no_grad():
         cal = model.calibration(imu)
-    torch.testing.assert_close(cal["gyro"][0], imu[0, :, 0:3] - bias, atol=1e-6, rtol=0)
+    torch.testing.assert_close(cal["gyro"][0], imu[0, :, 0:3] - bias, atol=EXACT_F32, rtol=0)
 
 
 def test_field_gates_drop_the_corrections_of_implausible_samples():

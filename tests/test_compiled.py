@@ -6,6 +6,7 @@ import torch
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.filters import ecf, eskf, madgwick, mahony
 from tcn_ahrs.filters.common import triad_quat
+from tolerances import PARITY_F64, REL_F64
 
 pytest.importorskip("numba")
 
@@ -41,9 +42,9 @@ def test_compiled_loop_equals_the_torch_filter(name, axes):
         if ref[key].dtype == torch.bool:
             assert torch.equal(ref[key], fast[key]), key
         else:
-            # 1e-12 absolute; the Mahalanobis statistic (values up to ~100) also 1e-12 relative
-            rtol = 1e-12 if key.startswith("mahalanobis") else 0.0
-            torch.testing.assert_close(fast[key], ref[key], atol=1e-12, rtol=rtol, msg=key)
+            # parity's 1e-12 absolute; the Mahalanobis statistic (values up to ~100) also 1e-12 relative
+            rtol = REL_F64 if key.startswith("mahalanobis") else 0.0
+            torch.testing.assert_close(fast[key], ref[key], atol=PARITY_F64[1], rtol=rtol, msg=key)
 
 
 def test_a_stiff_eskf_differs_only_at_its_round_off_floor():

@@ -20,6 +20,7 @@ from tcn_ahrs.filters.common import magnetic_from_nav, nwu_from_enu_quat
 from tcn_ahrs.sequence import ImuSequence
 
 from synthetic_filters import MAG_NAV, simulate, wavy  # noqa: E402  (shared with test_tuning)
+from tolerances import ANGLE_F64, DEG_F64, LIB_PARITY_F64, PARITY_F64, ROTATION_F64  # noqa: E402
 
 
 def angle_err_deg(q_gt, q_est):
@@ -63,7 +64,7 @@ def test_madgwick_matches_ahrs(parity_data, axes):
     # ahrs' 9-axis Madgwick ignores q0 and starts from ecompass(); start ours from its Q[0].
     ref_enu = so3.quat_mul(so3.quat_conj(c), torch.as_tensor(ref)).numpy()
     ours = madgwick(seq.gyro, seq.accel, np.full(len(seq), 1.0 / seq.rate), ref_enu[0], mag=mag, beta=0.1)["quat"]
-    assert np.abs(_pos(ours.numpy()) - _pos(ref_enu)).max() < 1e-6
+    assert np.abs(_pos(ours.numpy()) - _pos(ref_enu)).max() < LIB_PARITY_F64
 
 
 @pytest.mark.parametrize("axes", [6, 9])
@@ -73,8 +74,8 @@ def test_mahony_matches_ahrs(parity_data, axes):
     mag = seq.mag if axes == 9 else None
     ref = ahrs.filters.Mahony(gyr=seq.gyro, acc=seq.accel, mag=mag, frequency=seq.rate, q0=q0, k_P=1.3, k_I=0.4)
     ours = mahony(seq.gyro, seq.accel, np.full(len(seq), 1.0 / seq.rate), q0, mag=mag, k_p=1.3, k_i=0.4, compat=True)
-    assert np.abs(_pos(ours["quat"].numpy()) - _pos(ref.Q)).max() < 1e-6
-    assert np.abs(ours["gyro_bias"][-1].numpy() - ref.b).max() < 1e-9
+    assert np.abs(_pos(ours["quat"].numpy()) - _pos(ref.Q)).max() < LIB_PARITY_F64
+    assert np.abs(ours["gyro_bias"][-1].numpy() - ref.b).max() < ANGLE_F64
     # the exponential-map integration differs from ahrs' first-order step only at O(dt^2)
     exact = mahony(seq.gyro, seq.accel, np.full(len(seq), 1.0 / seq.rate), q0, mag=mag, k_p=1.3, k_i=0.4)
     assert angle_err_deg(ref.Q, exact["quat"].numpy()).max() < 0.01
@@ -88,7 +89,7 @@ def test_triad_recovers_static_attitude():
     r = so3.quat_to_matrix(q_true)
     a = r.T @ torch.tensor([0.0, 0.0, GRAVITY], dtype=torch.float64)
     m = r.T @ torch.as_tensor(MAG_NAV)
-    assert angle_err_deg(q_true[None], triad_quat(a, m)[None]).max() < 1e-9
+    assert angle_err_deg(q_true[None], triad_quat(a, m)[None]).max() < DEG_F64
     # accelerometer only: tilt right, heading arbitrary
     q_a = triad_quat(a)
     assert torch.allclose(so3.quat_rotate(q_a, a / a.norm()), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
@@ -100,7 +101,7 @@ def test_magnetic_from_nav_aligns_field_north():
     m0 = so3.quat_rotate(so3.quat_conj(q0), field_nav)
     c = magnetic_from_nav(q0, m0)
     v = so3.quat_rotate(c, field_nav)
-    assert abs(float(v[0])) < 1e-12 and float(v[1]) > 0 and abs(float(v[2]) + 40.0) < 1e-12
+    assert abs(float(v[0])) < ROTATION_F64 and float(v[1]) > 0 and abs(float(v[2]) + 40.0) < ROTATION_F64
 
 
 def test_chi2_threshold_from_alpha():
@@ -240,7 +241,7 @@ def test_batched_equals_one_by_one(name):
         for j in range(3):
             single = fn(g[i, 0], a[i, 0], dt[i, 0], q0[i, 0], mag=m[i, 0], **{pname: values[j]}, **kw)
             for k, v in single.items():
-                assert torch.allclose(batched[k][i, j].to(v.dtype), v, atol=1e-12), (k, i, j)
+                assert torch.allclose(batched[k][i, j].to(v.dtype), v, atol=PARITY_F64[1]), (k, i, j)
 
 
 # ----------------------------------------------------------------------- Estimator interface

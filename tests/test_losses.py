@@ -3,6 +3,7 @@ import pytest
 import torch
 
 from tcn_ahrs import so3
+from tolerances import ANGLE_F64, EXACT_F64, ROTATION_F64, SCAN_F64
 from tcn_ahrs.losses import (increment_loss, increment_valid, predicted_increments, true_increments,
                              window_products)
 
@@ -22,19 +23,19 @@ def test_window_products_match_sequential_reference(j):
     got = window_products(r, j)
     ref = torch.stack([so3.cumprod_matrix_sequential(r[:, i:i + j])[:, -1] for i in range(70 - j + 1)], 1)
     assert got.shape == ref.shape
-    assert torch.allclose(got, ref, atol=1e-13)
+    assert torch.allclose(got, ref, atol=EXACT_F64)
 
 
 def test_predicted_increments_equal_true_increments_of_integration():
     rot, omega, dt = _trajectory()
     for j in (16, 32):
-        assert torch.allclose(predicted_increments(omega, dt, j), true_increments(rot, j), atol=1e-12)
+        assert torch.allclose(predicted_increments(omega, dt, j), true_increments(rot, j), atol=ROTATION_F64)
 
 
 def test_loss_zero_for_perfect_prediction_and_positive_otherwise():
     rot, omega, dt = _trajectory()
     valid = torch.ones(rot.shape[:2], dtype=torch.bool)
-    assert float(increment_loss(omega, dt, rot, valid)) < 1e-9
+    assert float(increment_loss(omega, dt, rot, valid)) < ANGLE_F64
     biased = omega + torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64)
     l1 = float(increment_loss(biased, dt, rot, valid))
     l2 = float(increment_loss(omega + torch.tensor([0.02, 0.0, 0.0], dtype=torch.float64), dt, rot, valid))
@@ -77,7 +78,7 @@ def test_float64_products_vs_float32():
     e64 = float(so3.log(ref.transpose(-1, -2) @ p64).norm())
     e32 = float(so3.log(ref.transpose(-1, -2) @ p32.double()).norm())
     print(f"\nproduct of {j} increments: float32 error {e32:.2e} rad, float64 error {e64:.2e} rad")
-    assert e64 < 1e-11
+    assert e64 < SCAN_F64
     assert e32 > 1e3 * e64 and e32 > 1e-7
     # At the loss's own j = 16/32 the float32 round-off (~1e-8 rad) sits deep in Huber's
     # quadratic zone: both precisions give a ~0 loss at the exact rates (printed for the record).
@@ -86,4 +87,4 @@ def test_float64_products_vs_float32():
     l64 = float(increment_loss(omega, dt, rot, valid, dtype=torch.float64))
     l32 = float(increment_loss(omega.float(), dt.float(), rot.float(), valid, dtype=torch.float32))
     print(f"loss (j=16,32) at the exact rates: float64 {l64:.2e}, float32 {l32:.2e}")
-    assert l64 < 1e-12
+    assert l64 < ROTATION_F64

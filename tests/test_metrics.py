@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 from tcn_ahrs import metrics
 from tcn_ahrs.conventions import quat_xyzw_to_wxyz
 from tcn_ahrs.sequence import ImuSequence
+from tolerances import DEG_F32, DEG_F64, DEG_SMALL_F64, DEG_ZERO_F64, REL_METRIC_F64
 
 
 def rot_to_wxyz(r: Rotation) -> np.ndarray:
@@ -30,33 +31,33 @@ def test_constant_yaw_offset_unaligned_and_aligned():
     gt = random_gt()
     est = z_rot(5.0) * gt  # navigation-frame heading offset of 5 deg
     qg, qe = rot_to_wxyz(gt), rot_to_wxyz(est)
-    assert metrics.aye(qg, qe, align=False) == pytest.approx(5.0, abs=1e-9)
-    assert metrics.aae(qg, qe, align=False) == pytest.approx(5.0, abs=1e-9)
-    assert metrics.aye(qg, qe, align=True) == pytest.approx(0.0, abs=1e-9)
-    assert metrics.aae(qg, qe, align=True) == pytest.approx(0.0, abs=1e-9)
+    assert metrics.aye(qg, qe, align=False) == pytest.approx(5.0, abs=DEG_F64)
+    assert metrics.aae(qg, qe, align=False) == pytest.approx(5.0, abs=DEG_F64)
+    assert metrics.aye(qg, qe, align=True) == pytest.approx(0.0, abs=DEG_F64)
+    assert metrics.aae(qg, qe, align=True) == pytest.approx(0.0, abs=DEG_F64)
 
 
 def test_constant_tilt_offset():
     gt = random_gt(seed=1)
     est = Rotation.from_euler("x", 3.0, degrees=True) * gt  # tilt about the east axis
     b = metrics.broad_errors(rot_to_wxyz(gt), rot_to_wxyz(est), mode="9d")
-    assert b["inclination_deg"] == pytest.approx(3.0, abs=1e-9)
-    assert b["heading_deg"] == pytest.approx(0.0, abs=1e-9)
-    assert b["total_deg"] == pytest.approx(3.0, abs=1e-9)
-    assert metrics.aae(rot_to_wxyz(gt), rot_to_wxyz(est), align=False) == pytest.approx(3.0, abs=1e-9)
+    assert b["inclination_deg"] == pytest.approx(3.0, abs=DEG_F64)
+    assert b["heading_deg"] == pytest.approx(0.0, abs=DEG_F64)
+    assert b["total_deg"] == pytest.approx(3.0, abs=DEG_F64)
+    assert metrics.aae(rot_to_wxyz(gt), rot_to_wxyz(est), align=False) == pytest.approx(3.0, abs=DEG_F64)
 
 
 def test_heading_offset_broad_9d_and_6d():
     gt = random_gt(seed=2)
     qg, qe = rot_to_wxyz(gt), rot_to_wxyz(z_rot(4.0) * gt)
     b9 = metrics.broad_errors(qg, qe, mode="9d")
-    assert b9["heading_deg"] == pytest.approx(4.0, abs=1e-9)
-    assert b9["inclination_deg"] == pytest.approx(0.0, abs=1e-6)
-    assert b9["total_deg"] == pytest.approx(4.0, abs=1e-9)
+    assert b9["heading_deg"] == pytest.approx(4.0, abs=DEG_F64)
+    assert b9["inclination_deg"] == pytest.approx(0.0, abs=DEG_ZERO_F64)
+    assert b9["total_deg"] == pytest.approx(4.0, abs=DEG_F64)
     b6 = metrics.broad_errors(qg, qe, mode="6d")
-    assert b6["heading_deg"] == pytest.approx(0.0, abs=1e-7)
-    assert b6["total_deg"] == pytest.approx(0.0, abs=1e-6)
-    assert abs(b6["heading_offset_deg"]) == pytest.approx(4.0, abs=1e-9)
+    assert b6["heading_deg"] == pytest.approx(0.0, abs=DEG_SMALL_F64)
+    assert b6["total_deg"] == pytest.approx(0.0, abs=DEG_ZERO_F64)
+    assert abs(b6["heading_offset_deg"]) == pytest.approx(4.0, abs=DEG_F64)
 
 
 def test_broad_6d_removes_only_the_constant_heading_part():
@@ -66,11 +67,11 @@ def test_broad_6d_removes_only_the_constant_heading_part():
     qg, qe = rot_to_wxyz(gt), rot_to_wxyz(est)
     b6 = metrics.broad_errors(qg, qe, mode="6d")
     b9 = metrics.broad_errors(qg, qe, mode="9d")
-    assert b6["inclination_deg"] == pytest.approx(2.0, abs=1e-9)
-    assert b9["inclination_deg"] == pytest.approx(2.0, abs=1e-9)
-    assert b6["heading_deg"] == pytest.approx(0.0, abs=1e-7)
-    assert b9["heading_deg"] == pytest.approx(30.0, abs=1e-9)
-    assert b6["total_deg"] == pytest.approx(2.0, abs=1e-7)
+    assert b6["inclination_deg"] == pytest.approx(2.0, abs=DEG_F64)
+    assert b9["inclination_deg"] == pytest.approx(2.0, abs=DEG_F64)
+    assert b6["heading_deg"] == pytest.approx(0.0, abs=DEG_SMALL_F64)
+    assert b9["heading_deg"] == pytest.approx(30.0, abs=DEG_F64)
+    assert b6["total_deg"] == pytest.approx(2.0, abs=DEG_SMALL_F64)
 
 
 def test_broad_heading_time_varying_matches_scipy_decomposition():
@@ -81,8 +82,8 @@ def test_broad_heading_time_varying_matches_scipy_decomposition():
     est = Rotation.from_euler("z", ang[:, None], degrees=True) * gt
     e = metrics.broad_error_angles(rot_to_wxyz(gt), rot_to_wxyz(est))
     # q_err = q_gt q_est^-1 = Rz(-ang)
-    np.testing.assert_allclose(np.degrees(e["heading"]), -ang, atol=1e-9)
-    np.testing.assert_allclose(e["inclination"], 0.0, atol=1e-6)
+    np.testing.assert_allclose(np.degrees(e["heading"]), -ang, atol=DEG_F64)
+    np.testing.assert_allclose(e["inclination"], 0.0, atol=DEG_ZERO_F64)
 
 
 def test_masked_samples_are_ignored():
@@ -97,10 +98,10 @@ def test_masked_samples_are_ignored():
     qe_bad[bad] = rot_to_wxyz(Rotation.from_euler("x", 170, degrees=True) * gt[np.nonzero(bad)[0]])
     qg_bad = qg.copy()
     qg_bad[np.nonzero(bad)[0][1::2]] = np.nan  # missing ground truth on some masked samples
-    assert metrics.aye(qg_bad, qe_bad, mask, align=False) == pytest.approx(5.0, abs=1e-9)
-    assert metrics.aae(qg_bad, qe_bad, mask, align=False) == pytest.approx(5.0, abs=1e-9)
-    assert metrics.aae(qg_bad, qe_bad, mask, align=True) == pytest.approx(0.0, abs=1e-9)
-    assert metrics.broad_errors(qg_bad, qe_bad, mask)["heading_deg"] == pytest.approx(5.0, abs=1e-9)
+    assert metrics.aye(qg_bad, qe_bad, mask, align=False) == pytest.approx(5.0, abs=DEG_F64)
+    assert metrics.aae(qg_bad, qe_bad, mask, align=False) == pytest.approx(5.0, abs=DEG_F64)
+    assert metrics.aae(qg_bad, qe_bad, mask, align=True) == pytest.approx(0.0, abs=DEG_F64)
+    assert metrics.broad_errors(qg_bad, qe_bad, mask)["heading_deg"] == pytest.approx(5.0, abs=DEG_F64)
     # the huge errors are there: scoring them changes the result
     assert metrics.aae(qg, qe_bad, None, align=False) > 50.0
 
@@ -116,8 +117,8 @@ def test_mask_selecting_missing_ground_truth_raises():
 def test_yaw_wrapping():
     qg = rot_to_wxyz(Rotation.from_euler("z", [[359.0], [1.0], [-179.0]], degrees=True))
     qe = rot_to_wxyz(Rotation.from_euler("z", [[1.0], [359.0], [179.0]], degrees=True))
-    assert metrics.aye(qg, qe, align=False) == pytest.approx(2.0, abs=1e-9)
-    assert metrics.broad_errors(qg, qe)["heading_deg"] == pytest.approx(2.0, abs=1e-9)
+    assert metrics.aye(qg, qe, align=False) == pytest.approx(2.0, abs=DEG_F64)
+    assert metrics.broad_errors(qg, qe)["heading_deg"] == pytest.approx(2.0, abs=DEG_F64)
 
 
 def test_aae_matches_scipy_and_yaw_matches_scipy_euler():
@@ -126,28 +127,28 @@ def test_aae_matches_scipy_and_yaw_matches_scipy_euler():
     est = gt * Rotation.from_rotvec(rng.normal(scale=0.8, size=(300, 3)))
     ref = np.sqrt(np.mean((gt.inv() * est).magnitude() ** 2)) * 180 / np.pi
     qg, qe = rot_to_wxyz(gt), rot_to_wxyz(est)
-    assert metrics.aae(qg, qe, align=False) == pytest.approx(ref, rel=1e-9)
+    assert metrics.aae(qg, qe, align=False) == pytest.approx(ref, rel=REL_METRIC_F64)
     # the quaternion sign must not matter
-    assert metrics.aae(qg, -qe, align=False) == pytest.approx(ref, rel=1e-9)
+    assert metrics.aae(qg, -qe, align=False) == pytest.approx(ref, rel=REL_METRIC_F64)
     # aligned: scipy reference with R_est' = R_gt[0] R_est[0]^T R_est
     est_al = gt[0] * est[0].inv() * est
     ref_al = np.sqrt(np.mean((gt.inv() * est_al).magnitude() ** 2)) * 180 / np.pi
-    assert metrics.aae(qg, qe, align=True) == pytest.approx(ref_al, rel=1e-9)
+    assert metrics.aae(qg, qe, align=True) == pytest.approx(ref_al, rel=REL_METRIC_F64)
     # AYE against scipy's intrinsic ZYX yaw
     yg = gt.as_euler("ZYX")[:, 0]
     ye = est.as_euler("ZYX")[:, 0]
     d = (ye - yg + np.pi) % (2 * np.pi) - np.pi
-    assert metrics.aye(qg, qe, align=False) == pytest.approx(np.degrees(np.sqrt(np.mean(d**2))), rel=1e-9)
+    assert metrics.aye(qg, qe, align=False) == pytest.approx(np.degrees(np.sqrt(np.mean(d**2))), rel=REL_METRIC_F64)
     # broad total angle = same per-sample rotation angle, earth frame
     tot = np.sqrt(np.mean((gt * est.inv()).magnitude() ** 2)) * 180 / np.pi
-    assert metrics.broad_errors(qg, qe)["total_deg"] == pytest.approx(tot, rel=1e-9)
+    assert metrics.broad_errors(qg, qe)["total_deg"] == pytest.approx(tot, rel=REL_METRIC_F64)
 
 
 def test_accepts_tensors_and_rejects_bad_shapes():
     gt = random_gt(n=50)
     qg = torch.as_tensor(rot_to_wxyz(gt), dtype=torch.float32)
     qe = torch.as_tensor(rot_to_wxyz(z_rot(5.0) * gt), dtype=torch.float32)
-    assert metrics.aye(qg, qe, align=False) == pytest.approx(5.0, abs=1e-3)
+    assert metrics.aye(qg, qe, align=False) == pytest.approx(5.0, abs=DEG_F32)
     with pytest.raises(ValueError, match=r"shape \(N, 4\)"):
         metrics.aae(np.zeros((5, 3)), np.zeros((5, 3)))
     with pytest.raises(ValueError, match="expected 50 samples"):
@@ -180,13 +181,13 @@ def test_sequence_metrics_keys_and_values():
     seq9 = _seq(gt, mag=True, score_mask=score)
     r9 = metrics.sequence_metrics(seq9, est, axes=9)
     assert r9["n_scored"] == 150
-    assert r9["aae_deg"] == pytest.approx(0.0, abs=1e-9)  # aligned
-    assert r9["heading_deg"] == pytest.approx(5.0, abs=1e-9)  # BROAD: never aligned
+    assert r9["aae_deg"] == pytest.approx(0.0, abs=DEG_F64)  # aligned
+    assert r9["heading_deg"] == pytest.approx(5.0, abs=DEG_F64)  # BROAD: never aligned
     assert r9["broad_mode"] == "9d"
     r6 = metrics.sequence_metrics(seq9, est, axes=6)
-    assert r6["broad_mode"] == "6d" and r6["heading_deg"] == pytest.approx(0.0, abs=1e-7)
+    assert r6["broad_mode"] == "6d" and r6["heading_deg"] == pytest.approx(0.0, abs=DEG_SMALL_F64)
     r_na = metrics.sequence_metrics(seq9, est, axes=6, align=False)
-    assert r_na["aye_deg"] == pytest.approx(5.0, abs=1e-9)
+    assert r_na["aye_deg"] == pytest.approx(5.0, abs=DEG_F64)
     seq6 = _seq(gt, mag=False)
     r = metrics.sequence_metrics(seq6, est)
     assert set(r) == {"n_scored", "aae_deg", "aye_deg", "ahe_deg"}
@@ -204,11 +205,12 @@ def test_heading_error_stays_defined_with_vertical_body_x_axis():
     gt = Rotation.from_euler("ZYX", np.stack([heading, -90.0 + wobble[:, 0], wobble[:, 1]], 1), degrees=True)
     est = z_rot(3.0) * gt  # 3 deg about the navigation vertical
     q_gt, q_est = rot_to_wxyz(gt), rot_to_wxyz(est)
-    assert metrics.ahe(q_gt, q_est, align=False) == pytest.approx(3.0, abs=1e-6)
-    assert metrics.aae(q_gt, q_est, align=False) == pytest.approx(3.0, abs=1e-6)
+    # the heading of a near-vertical body axis is conditioned like a near-zero angle: DEG_ZERO
+    assert metrics.ahe(q_gt, q_est, align=False) == pytest.approx(3.0, abs=DEG_ZERO_F64)
+    assert metrics.aae(q_gt, q_est, align=False) == pytest.approx(3.0, abs=DEG_ZERO_F64)
     # aligned at the first sample, a constant offset is removed entirely
-    assert metrics.ahe(q_gt, q_est) == pytest.approx(0.0, abs=1e-6)
+    assert metrics.ahe(q_gt, q_est) == pytest.approx(0.0, abs=DEG_ZERO_F64)
     q_tilt = rot_to_wxyz(Rotation.from_euler("x", 2.0, degrees=True) * gt)  # tilt error, nav frame
-    assert metrics.ahe(q_gt, q_tilt, align=False) == pytest.approx(0.0, abs=1e-6)
-    assert metrics.aae(q_gt, q_tilt, align=False) == pytest.approx(2.0, abs=1e-6)
+    assert metrics.ahe(q_gt, q_tilt, align=False) == pytest.approx(0.0, abs=DEG_ZERO_F64)
+    assert metrics.aae(q_gt, q_tilt, align=False) == pytest.approx(2.0, abs=DEG_ZERO_F64)
     assert metrics.aye(q_gt, q_tilt, align=False) > 10.0

@@ -45,13 +45,27 @@ class SensorMatrix(nn.Module):
 
 
 def _error_net(kind: str, in_channels: int, tcn_kwargs: dict, extra: int = 0) -> Optional[nn.Module]:
+    """The error network of ``kind``: one of :data:`NET_KINDS`, or a network of one's own named
+    by its import path (``gyro_net: my_pkg.my_nets.MyNet`` in a ``conf/model/<variant>.yaml``),
+    built as ``MyNet(in_channels, out_channels, **model.tcn)``: a module mapping (B, N, in) to
+    (B, N, out) causally, with an int ``receptive_field``."""
     if kind == "tcn":
         return TCN(in_channels, 3 + extra, **tcn_kwargs)
     if kind == "constant":
         return ConstantError(3 + extra)
     if kind == "none":
         return None
-    raise ValueError(f"error network kind {kind!r}: expected one of {NET_KINDS}")
+    if "." in kind:
+        import importlib
+
+        mod, _, cls = kind.rpartition(".")
+        try:
+            factory = getattr(importlib.import_module(mod), cls)
+        except (ImportError, AttributeError) as e:
+            raise ValueError(f"error network kind {kind!r}: cannot import it ({e})") from None
+        return factory(in_channels, 3 + extra, **tcn_kwargs)
+    raise ValueError(f"error network kind {kind!r}: expected one of {NET_KINDS} or an importable "
+                     "'module.Class'")
 
 
 class Calibration(nn.Module):
@@ -61,7 +75,7 @@ class Calibration(nn.Module):
 
     Args:
         axes:        6 (gyro, acc) or 9 (gyro, acc, mag).
-        gyro_net, acc_net, mag_net: "tcn" | "constant" | "none".
+        gyro_net, acc_net, mag_net: "tcn" | "constant" | "none" | an importable "module.Class" (:func:`_error_net`).
         gyro_input:  "all" (Eq. 15: every sensor feeds the gyro network) or "gyro".
         error_scale: multiplies each network's output (a dimensionless O(1) output maps to a
                      physical error of this size: rad/s, m/s^2, uT); keeps the first Adam steps
@@ -119,7 +133,7 @@ class Calibration(nn.Module):
         b = torch.as_tensor(bias, dtype=torch.float32).reshape(3) / float(self.error_scale["gyro"])
         if isinstance(net, ConstantError):
             net.bias[0:3] = b
-        else:
+        elif isinstance(getattr(net, "out", None), nn.Module):  # TCN (and networks of one's own with an output layer)
             net.out.bias[0:3] = b
 
     @property
