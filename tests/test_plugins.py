@@ -30,12 +30,11 @@ import torch
 from omegaconf import OmegaConf
 
 from tcn_ahrs import metrics
+from tcn_ahrs.conf import CONF_DIR
 from tcn_ahrs.estimators import registry
 
 from synthetic_filters import simulate, wavy
 
-# The project's config folder: the one line to change if conf/ moves.
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 
 @contextmanager
