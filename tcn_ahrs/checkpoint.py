@@ -91,7 +91,12 @@ def checkpoint_meta(ckpt: Mapping, path="checkpoint") -> Dict[str, Any]:
     meta = ckpt.get("tcn_ahrs")
     if not isinstance(meta, Mapping) or "layout" not in meta or "model" not in meta:
         raise CheckpointError(f"{path}: not a tcn-ahrs checkpoint (no 'tcn_ahrs' model/layout record)")
-    return dict(meta)
+    meta = dict(meta)
+    if isinstance(meta["model"], Mapping) and "loop" not in meta["model"]:
+        # written before the closed loop existed (checkpoints/paper/*): the open loop, the model's
+        # only loop then (today's default is the closed loop, tcn_ahrs/config/model.py)
+        meta["model"] = {**dict(meta["model"]), "loop": "open"}
+    return meta
 
 
 def check_layout(ckpt: Mapping, axes: int, path="checkpoint") -> None:

@@ -98,7 +98,7 @@ def test_numeric_train_values_are_checked_with_the_key_named(key, value, message
 def test_reanchor_must_be_a_positive_sample_count():
     from tcn_ahrs.estimators.learned import LearnedEstimator
 
-    model = LearnedAHRS(axes=6, mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]})
+    model = LearnedAHRS(axes=6, loop="open", mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]})
     with pytest.raises(ValueError, match=r"reanchor: expected an integer >= 1, got -5"):
         LearnedEstimator(model, reanchor=-5)
 

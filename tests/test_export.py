@@ -16,6 +16,7 @@ from tcn_ahrs.export import (BatchAHRS, ExportError, StreamingAHRS, _hamilton_ta
                              build_metadata, export_batch, export_checkpoint, export_streaming,
                              file_sha256, fuse_model, quat_cumprod, quat_integrate, read_metadata,
                              streaming_path)
+from tcn_ahrs.config.model import PAPER_MODEL  # the paper's open-loop model
 from tcn_ahrs.model.ahrs import LearnedAHRS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -100,7 +101,7 @@ def eager(model: LearnedAHRS, imu, dt, q0):
                                         for n in CONFIGS])
 def case(request):
     name = request.param
-    model = randomize(LearnedAHRS(**CONFIGS[name]), seed=len(name))
+    model = randomize(LearnedAHRS(**PAPER_MODEL, **CONFIGS[name]), seed=len(name))
     fused = fuse_model(model)
     md = build_metadata(model, "batch")
     return {"name": name, "model": model, "batch": _script(BatchAHRS(fused, md)),
@@ -151,7 +152,7 @@ def test_step_matches_run_and_reset(case):
 
 def test_float64_network_matches_float64_eager_model():
     """With a float64 network the export reproduces the eager model (run in float64) to round-off."""
-    model = randomize(LearnedAHRS(**CONFIGS["ahrs9_raw"])).double()
+    model = randomize(LearnedAHRS(**PAPER_MODEL, **CONFIGS["ahrs9_raw"])).double()
     fused = fuse_model(model)
     batch = _script(BatchAHRS(fused, build_metadata(model, "batch"), torch.float64))
     stream = _script(StreamingAHRS(fused, build_metadata(model, "streaming"), torch.float64))
@@ -168,7 +169,7 @@ def test_float64_network_matches_float64_eager_model():
 def test_streaming_history_is_the_receptive_field():
     """A change older than the receptive field does not reach the network output (ring buffers
     hold exactly the needed history); one inside it does."""
-    model = randomize(LearnedAHRS(axes=9, ecf=False))
+    model = randomize(LearnedAHRS(**PAPER_MODEL, axes=9, ecf=False))
     stream = _script(StreamingAHRS(fuse_model(model), build_metadata(model, "streaming")))
     rf = model.receptive_field
     n = rf + 50
@@ -184,7 +185,7 @@ def test_streaming_history_is_the_receptive_field():
 
 
 def test_bad_inputs_raise_clear_errors():
-    model = randomize(LearnedAHRS(axes=6, mag_net="none", use_mag_term=False))
+    model = randomize(LearnedAHRS(**PAPER_MODEL, axes=6, mag_net="none", use_mag_term=False))
     fused = fuse_model(model)
     batch = _script(BatchAHRS(fused, build_metadata(model, "batch")))
     stream = _script(StreamingAHRS(fused, build_metadata(model, "streaming")))
@@ -243,7 +244,7 @@ def test_streaming_output_tensor_is_float64_exact():
 def test_bfloat16_network_is_batch_only_and_opt_in(tmp_path):
     """bfloat16 convolutions (opt-in, ~2x faster TCN on AVX512-BF16 CPUs): runs, is close to the
     float32 export but NOT within the 1e-5 rad parity (documented in docs/performance.md)."""
-    model = randomize(LearnedAHRS(**CONFIGS["ahrs9_raw"]), seed=9)
+    model = randomize(LearnedAHRS(**PAPER_MODEL, **CONFIGS["ahrs9_raw"]), seed=9)
     fused = fuse_model(model)
     imu, q0 = make_imu(9, n=1000), q0_for(0)
     q32, w32 = _script(BatchAHRS(fused, build_metadata(model, "batch")))(imu, 0.01, q0)
@@ -346,7 +347,7 @@ def test_export_modes_and_rate(tmp_path):
 
 
 def test_module_level_api_saves_loadable_files(tmp_path):
-    model = randomize(LearnedAHRS(**CONFIGS["ahrs9_two_pass"]))
+    model = randomize(LearnedAHRS(**PAPER_MODEL, **CONFIGS["ahrs9_two_pass"]))
     pb, ps = tmp_path / "b.pt", tmp_path / "s.pt"
     sb = export_batch(model, pb, {"rate_hz": 100.0})
     ss = export_streaming(model, ps, {"rate_hz": 100.0})
