@@ -19,8 +19,9 @@ from omegaconf import DictConfig
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tcn_ahrs.cli import check_overrides, user_errors  # noqa: E402
+from tcn_ahrs.config import ExportConfig, keys  # noqa: E402
 
-KEYS = {"ckpt", "out", "mode", "rate", "net_dtype", "overwrite"}
+KEYS = keys(ExportConfig)  # conf/export.yaml's keys: tcn_ahrs/config/scripts.py
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="export")

@@ -21,11 +21,12 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence
 
+from .config import CONF_DIR
 from .transfer import METRICS, score_cell, write_result
 
 DATASETS = ("broad", "euroc", "tumvi", "oxiod")
 BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick", "eskf", "robust_eskf", "riann")
-CONF = Path(__file__).resolve().parents[1] / "conf"
+CONF = CONF_DIR
 
 
 def own_model(nested_json: Path) -> Optional[Dict[str, float]]:

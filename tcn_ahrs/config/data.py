@@ -76,3 +76,18 @@ DATA_SCHEMAS = {"simulated": SimulatedData, "rosbag": RosbagData, "general6": Ge
 
 def data_schema(name: str):
     return DATA_SCHEMAS.get(str(name), RecordingsData)
+
+
+@dataclass
+class GenericDeclarations:
+    """Unit/frame declarations of a generic-format recording (tcn_ahrs/datasets/generic.py): HDF5
+    root attributes or a CSV's YAML sidecar; also ``declare:`` of conf/data/rosbag.yaml."""
+    time_unit: str = "s"               # s | ms | us | ns
+    gyr_unit: str = "rad/s"            # rad/s | deg/s
+    acc_unit: str = "m/s^2"            # m/s^2 | g
+    acc_sign: str = "specific_force"   # specific_force | gravity
+    mag_unit: str = "uT"               # uT | G | nT | arbitrary (direction only)
+    quat_order: str = "wxyz"           # wxyz | xyzw
+    nav_frame: Any = "ENU"             # ENU | NED | NWU | 3x3 C_enu_from_frame (rows)
+    gt_body_from_imu: Optional[List[float]] = None  # quaternion (w, x, y, z) or 3x3 matrix; null: identity
+    rate: Optional[float] = None       # nominal rate, Hz; null: from t

@@ -8,12 +8,13 @@ import torch
 from omegaconf import DictConfig
 
 from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
+from ..config import EvaluateConfig, keys
 from ..cli import output_dir, refuse_earlier_output, staged_output
 from ..validate import check_keys, set_threads
 from .reports import print_table
 from .runner import evaluate
 
-EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor", "other_rate", "overwrite"}
+EVAL_KEYS = keys(EvaluateConfig)  # conf/evaluate.yaml's top level: tcn_ahrs/config/scripts.py
 
 
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:

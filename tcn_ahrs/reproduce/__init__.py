@@ -21,4 +21,9 @@ def papers() -> List[str]:
 def run(name: str, cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
     if name not in papers():
         raise ValueError(f"paper: unknown experiment {name!r}; expected one of {papers()}")
+    from ..config import check_keys
+    from ..config.papers import PAPERS
+
+    if name in PAPERS:  # conf/paper/<name>.yaml's keys: tcn_ahrs/config/papers.py
+        check_keys(cfg, PAPERS[name], f"paper {name}")
     return importlib.import_module(f"{__name__}.{name}").main(cfg, Path(out))
