@@ -95,7 +95,8 @@ class UwbArckf:
     beyond: bool = True
     nlos_bias: List[float] = field(default_factory=lambda: [0.5, 3.0])  # m
     beacon_heights: List[float] = field(default_factory=lambda: [0.5, 2.5, 1.2, 3.0])  # m
-    dropouts: List[List[float]] = field(default_factory=lambda: [[0, 20.0, 15.0], [1, 60.0, 10.0], [2, 60.0, 10.0]])
+    # (beacon index, start s, length s)
+    dropouts: List[List[Any]] = field(default_factory=lambda: [[0, 20.0, 15.0], [1, 60.0, 10.0], [2, 60.0, 10.0]])
     burst_len: int = 10
     plots: bool = True
 

@@ -24,7 +24,8 @@ class SpeedTrain:
     steps: int = 3                # timed steps per variant (at least 1) ...
     max_seconds: float = 25.0     # ... unless this many seconds of timed steps passed
     compile_timeout_s: int = 300  # hard bound on the compile subprocess
-    curve_variants: List[str] = field(default_factory=lambda: ["bf16"])  # loss curves checked against the first variant's
+    # loss curves checked against the first variant's
+    curve_variants: List[str] = field(default_factory=lambda: ["bf16"])
     curve_steps: int = 10
     threads: Optional[int] = None  # torch threads (None: torch's default = all cores)
     data_config: Optional[str] = "conf/data/broad.yaml"  # for the exact epoch size; None: constant

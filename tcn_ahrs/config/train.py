@@ -39,10 +39,10 @@ class TrainConfig:
     stride: int = _num(200, 1)             # spacing of admissible window starts (one epoch = all of them)
     batch_size: int = _num(16, 1)
     epochs: int = _num(14, 1)              # simulator default; real data: experiment=<name>_cl
-    lr: float = _num(0.003, 0.0, False)             # AdamW (real-data configs: 1e-3; the paper: 0.01)
+    lr: float = _num(0.003, 0.0, False)  # AdamW (real-data configs: 1e-3; the paper: 0.01)
     stream_chunks: int = _num(8, 1)        # closed loop: chunks a stream runs before it restarts
     attitude_delta: float = _num(0.01, 0.0, False)  # closed loop: Huber delta of the attitude loss, rad
-    ema_decay: float = _num(0.98, 0.0, True, 1.0)       # weight average used for validation, selection and release (0: off)
+    ema_decay: float = _num(0.98, 0.0, True, 1.0)  # weight average for validation, selection, release (0: off)
     init_gyro_bias: bool = True   # closed loop: gyro error term starts at the mean gyro at rest
     tune_backbone: bool = True    # model=residual: the backbone's knobs chosen on the training recordings
     tune_criterion: str = "aae"   # aae | never_worse
