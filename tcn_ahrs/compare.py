@@ -272,6 +272,7 @@ def _timed(e):
 # conf/compare.yaml's and conf/benchmark.yaml's top-level keys: tcn_ahrs/config/scripts.py
 COMPARE_KEYS = keys(CompareConfig)
 BENCHMARK_KEYS = keys(BenchmarkConfig)  # speed/quick: speed mode; transfer, lodo, finetune: theirs
+_C = CompareConfig()  # the defaults of keys a hand-built config may lack
 
 
 def _default_out(cfg, kind: str) -> Path:
@@ -311,7 +312,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
         raise ValueError(f"{kind} config: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed_keys)}")
     set_threads(cfg.get("threads"))
     split = str(cfg.data.get("split", "test"))
-    tune_split = str(cfg.get("tune_split") or "train")
+    tune_split = str(cfg.get("tune_split") or _C.tune_split)
     if tune_split not in ("train", "trainval"):
         raise ValueError(f"tune_split: expected 'train' (the training parts of the training recordings) or "
                          f"'trainval', got {tune_split!r}: tuning never uses test/validation recordings")
@@ -327,7 +328,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
         methods += [m for m in registry.methods("peer") if m not in methods]
     ckpts = dict(plain(cfg.get("ckpts")) or {})
     if cfg.get("ckpt"):
-        ckpts.setdefault(str(cfg.get("ckpt_label") or "Proposed"), str(cfg.ckpt))
+        ckpts.setdefault(str(cfg.get("ckpt_label") or BenchmarkConfig.ckpt_label), str(cfg.ckpt))
     t0 = time.perf_counter()
     eval_seqs = [s for s in load_split(cfg.data, split) if s.has_gt]
     if not eval_seqs:
@@ -337,14 +338,17 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
     load_s = time.perf_counter() - t0
     out = _default_out(cfg, kind)
     res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=int(cfg.data.get("axes", 9)),
-                  both_axes=bool(cfg.get("both_axes", True)), variants=list(plain(cfg.get("variants")) or VARIANTS),
+                  both_axes=bool(cfg.get("both_axes", _C.both_axes)),
+                  variants=list(plain(cfg.get("variants")) or VARIANTS),
                   tune=bool(cfg.get("tune")), ckpts=ckpts, ablation_ckpts=plain(cfg.get("ablation_ckpts")) or {},
                   out_dir=out, tune_max_seconds_per_recording=cfg.get("tune_max_seconds_per_recording"),
-                  tune_lead_seconds=float(cfg.get("tune_lead_seconds", 10.0)),
-                  tune_recordings=cfg.get("tune_recordings"), tune_max_batch=int(cfg.get("tune_max_batch", 128)),
-                  dataset=str(cfg.data.name), plots=bool(cfg.get("plots", False)),
-                  trajectories=bool(cfg.get("trajectories", False)), align=bool(cfg.get("align", True)),
-                  device=str(cfg.get("device", "cpu")), verbose=bool(cfg.get("verbose", False)),
+                  tune_lead_seconds=float(cfg.get("tune_lead_seconds", _C.tune_lead_seconds)),
+                  tune_recordings=cfg.get("tune_recordings"),
+                  tune_max_batch=int(cfg.get("tune_max_batch", _C.tune_max_batch)),
+                  dataset=str(cfg.data.name), plots=bool(cfg.get("plots", _C.plots)),
+                  trajectories=bool(cfg.get("trajectories", _C.trajectories)),
+                  align=bool(cfg.get("align", _C.align)),
+                  device=str(cfg.get("device", _C.device)), verbose=bool(cfg.get("verbose", _C.verbose)),
                   reanchor=cfg.get("reanchor"), on_calibrated=plain(cfg.get("on_calibrated")) or None,
                   extra={"split": split, "tune_split": tune_split if cfg.get("tune") else None,
                          "config": plain(cfg), "load_s": round(load_s, 2)})

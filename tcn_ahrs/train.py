@@ -28,7 +28,7 @@ from .model.ahrs import LearnedAHRS
 from .training.module import AHRSModule, _aae_deg  # noqa: F401  (re-exported)
 from .training.setup import (AUGMENT_KEYS, MONITORS, TRAIN_KEYS, TRAIN_VALUES, check_train_values,  # noqa: F401
                              choose_knobs_into_checkpoint, model_axes, rest_gyro_mean)
-from .training.trainer import (RESUME_KEYS, AppendingCSVLogger, RandomState, build_trainer,  # noqa: F401
+from .training.trainer import (RESUME_KEYS, AppendingCSVLogger, RandomState, build_trainer, check_groups,  # noqa: F401
                                command_line_overrides, find_resume_checkpoint, resume_config, run_dir_of,
                                trim_metrics)
 from .validate import set_threads
@@ -39,14 +39,19 @@ __all__ = ["train_main", "check_config", "AHRSModule", "choose_knobs_into_checkp
            "TRAIN_VALUES", "MONITORS", "RESUME_KEYS"]
 
 
+_T, _E = TrainConfig(), EvalSection()  # the defaults of keys a hand-built config may lack
+
+
 def check_config(cfg) -> None:
     """train.yaml's top level, ``train:`` and ``eval:`` against their schemas (a misspelt key is
     an error naming the expected set; the groups ``data``/``model``/``trainer``/``callbacks``/
-    ``logger`` are checked by their own code, ``crossval`` by scripts/crossval.py)."""
+    ``logger`` are checked by their own code — the last two here too, before any work —
+    ``crossval`` by scripts/crossval.py)."""
     check_keys(cfg, TrainScriptConfig, "train config", extra=TRAIN_GROUPS + ("crossval",))
     check_keys(cfg.train, TrainConfig, "train")
     check_train_values(cfg.train)
     check_keys(cfg.get("eval") or {}, EvalSection, "eval")
+    check_groups(cfg)
 
 
 def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
@@ -83,7 +88,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         check_layout(load_checkpoint(str(cfg.init)), axes, str(cfg.init))
         model_cfg = dict(checkpoint_meta(load_checkpoint(str(cfg.init)), str(cfg.init))["model"])
         model_cfg["axes"] = axes
-        if cfg.train.get("init_gyro_bias", True) and model_cfg.get("residual") is not None:
+        if cfg.train.get("init_gyro_bias", _T.init_gyro_bias) and model_cfg.get("residual") is not None:
             # the bias state starts at this device's estimated bias (general models start at zero)
             model_cfg["residual"] = {**dict(model_cfg["residual"]), "bias_prior": 1.0}
         print(f"fine-tuning from {cfg.init} ({model_cfg.get('variant')}, {init_model.num_parameters():,} parameters)")
@@ -97,7 +102,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         from .datasets import load_split
 
         train_seqs, val_seqs = load_split(cfg.data, "trainval"), []
-    supervision = str(cfg.train.get("supervision") or "gt")
+    supervision = str(cfg.train.get("supervision") or _T.supervision)
     if supervision == "self" and (probe.backbone is None or init_model is None):
         raise ValueError("train.supervision=self: fine-tunes a residual model without ground truth; set "
                          "init=<checkpoint of a residual model> (e.g. checkpoints/general9.ckpt)")
@@ -107,14 +112,14 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     dm.prepare()
     if supervision == "self":
         dm.val_seqs, dm.val_store = [], None  # nothing to validate against without ground truth
-    if probe.backbone is not None and cfg.train.get("tune_backbone", True) and supervision == "gt":
+    if probe.backbone is not None and cfg.train.get("tune_backbone", _T.tune_backbone) and supervision == "gt":
         from .tuning import tune_backbone
 
         # the backbone's knobs, chosen on the training recordings before any network trains
         # (never on the held-out ones); stored in the model config, so the checkpoint keeps them
         chosen, table = tune_backbone(dm.train_seqs, axes,
                                       gyro_bias_std=float((cfg.train.get("augment") or {}).get("gyro_bias") or 0.0),
-                                      criterion=str(cfg.train.get("tune_criterion") or "aae"))
+                                      criterion=str(cfg.train.get("tune_criterion") or _T.tune_criterion))
         res = dict(model_cfg.get("residual") or {})
         res["backbone"] = {**dict(res.get("backbone") or {}), **chosen}
         model_cfg["residual"] = res
@@ -124,9 +129,9 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     module = AHRSModule(model_cfg, axes, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay),
                         epochs=int(cfg.train.epochs), window=dm.window, loss_js=list(cfg.train.loss_js),
                         huber_delta=float(cfg.train.huber_delta), noise=plain(cfg.train.noise),
-                        stream_chunks=int(cfg.train.get("stream_chunks") or 8),
-                        attitude_delta=float(cfg.train.get("attitude_delta") or 0.01),
-                        ema_decay=float(cfg.train.get("ema_decay") or 0.0),
+                        stream_chunks=int(cfg.train.get("stream_chunks") or _T.stream_chunks),
+                        attitude_delta=float(cfg.train.get("attitude_delta") or _T.attitude_delta),
+                        ema_decay=float(cfg.train.get("ema_decay") or 0.0),  # null: off
                         augment=plain(cfg.train.get("augment") or {}), supervision=supervision,
                         data_name=str(cfg.data.name),
                         # the rate the model learned at (its TCN's time scale), for deployment
@@ -141,7 +146,8 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         module.model.calibration.set_input_stats(mean, std)
     if module.model.closed is not None:
         module.model.closed.set_rate(module.hparams.rate_hz)
-        bias = rest_gyro_mean(module.model, dm.train_store) if cfg.train.get("init_gyro_bias", True) else None
+        at_rest = cfg.train.get("init_gyro_bias", _T.init_gyro_bias)
+        bias = rest_gyro_mean(module.model, dm.train_store) if at_rest else None
         if bias is not None:
             # the static gyro bias, measured where the training recordings are at rest, as the
             # gyro error term's starting point: a TCN output that must grow from zero to an
@@ -149,7 +155,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
             module.model.calibration.set_gyro_bias(bias)
             print(f"gyro error term starts at the training recordings' mean gyro at rest: "
                   f"{[round(float(v), 5) for v in bias]} rad/s")
-    if module.model.backbone is not None and cfg.train.get("init_gyro_bias", True):
+    if module.model.backbone is not None and cfg.train.get("init_gyro_bias", _T.init_gyro_bias):
         from .tuning import backbone_bias
 
         b0 = backbone_bias(dm.train_seqs, axes, (model_cfg.get("residual") or {}).get("backbone") or {})
@@ -197,10 +203,10 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         # chosen on the held-out (validation) recordings, never on the reported ones
         best = last
         result["best"] = last
-        if cfg.train.get("select_knobs", True) and dm.val_seqs:
+        if cfg.train.get("select_knobs", _T.select_knobs) and dm.val_seqs:
             result["knobs"] = choose_knobs_into_checkpoint(last, dm.val_seqs, run_dir,
                                                            plain(cfg.train.get("knob_grid")) or None,
-                                                           str(cfg.train.get("knob_rule") or "both"))
+                                                           str(cfg.train.get("knob_rule") or _T.knob_rule))
     print(f"training took {fit_s:.1f} s; best checkpoint {best} ({monitor} = {ckpt_cb.best_model_score})")
     done_epochs = int(trainer.current_epoch)
     if cfg.train.get("max_time") and done_epochs < int(cfg.train.epochs):
@@ -210,13 +216,13 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
               "use its schedule (experiment=<name>_cl, no cap) or set train.max_time=null", file=sys.stderr)
 
     ev = cfg.get("eval") or {}
-    if ev.get("enabled", True):
+    if ev.get("enabled", _E.enabled):
         from .evaluate import evaluate, print_table
         from .estimators.learned import LearnedEstimator
 
         if test_seqs is None:
             from .datasets import load_split
-            test_seqs = load_split(cfg.data, str(ev.get("split", "test")))
+            test_seqs = load_split(cfg.data, str(ev.get("split", _E.split)))
         test_seqs = [s for s in test_seqs if s.has_gt]
         if not test_seqs:
             warnings.warn(f"no held-out recordings with ground truth in split {ev.get('split', 'test')!r}; "
@@ -224,11 +230,11 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
             return result
         from .estimators.registry import baseline_estimators
 
-        learned = LearnedEstimator(best, name=str(ev.get("name", "Learned AHRS")))
-        estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", [])), axes)
+        learned = LearnedEstimator(best, name=str(ev.get("name", _E.name)))
+        estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", _E.baselines)), axes)
         res = evaluate(estimators, test_seqs, out_dir=run_dir / "eval", axes=axes,
-                       dataset=str(cfg.data.name), plots=bool(ev.get("plots", True)),
-                       trajectories=bool(ev.get("trajectories", True)))
+                       dataset=str(cfg.data.name), plots=bool(ev.get("plots", _E.plots)),
+                       trajectories=bool(ev.get("trajectories", _E.trajectories)))
         print(f"\nHeld-out evaluation ({cfg.data.name}, split {ev.get('split', 'test')}, "
               f"{len(test_seqs)} recordings; results in {run_dir / 'eval'}):")
         print_table(res)

@@ -23,7 +23,7 @@ from ..checkpoint import AtomicCheckpointIO, CheckpointError
 from ..cli import output_dir
 from ..config import conf_path, plain
 
-__all__ = ["build_trainer", "build_callbacks", "build_loggers", "RandomState", "AppendingCSVLogger",
+__all__ = ["build_trainer", "build_callbacks", "build_loggers", "check_groups", "RandomState", "AppendingCSVLogger",
            "find_resume_checkpoint", "resume_config", "trim_metrics", "command_line_overrides", "RESUME_KEYS",
            "run_dir_of"]
 
@@ -118,10 +118,41 @@ def _instantiate_all(entries: Dict[str, Any], runtime: Dict[str, str], what: str
             continue
         if not isinstance(spec, dict) or "_target_" not in spec:
             raise ValueError(f"{what}.{key}: expected a mapping with a _target_ (a class to instantiate), got {spec!r}")
-        obj = instantiate(_fill(spec, runtime))
+        try:
+            obj = instantiate(_fill(spec, runtime))
+        except Exception as e:  # noqa: BLE001 - Hydra wraps the target's error; a config error here
+            raise ValueError(f"{what}.{key}: cannot instantiate {spec['_target_']}: "
+                             f"{str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__}") from e
         if obj is not None:
             out.append(obj)
     return out
+
+
+def check_groups(cfg) -> None:
+    """The ``callbacks``/``logger`` entries before any work: each a mapping whose ``_target_``
+    imports and takes the entry's arguments (a misspelt one is a ``ValueError`` naming it)."""
+    import importlib
+    import inspect
+
+    for what in ("callbacks", "logger"):
+        for key, spec in _group(cfg, what).items():
+            if spec is None:
+                continue
+            if not isinstance(spec, dict) or "_target_" not in spec:
+                raise ValueError(f"{what}.{key}: expected a mapping with a _target_ (a class to instantiate), "
+                                 f"got {spec!r}")
+            mod, _, name = str(spec["_target_"]).rpartition(".")
+            try:
+                target = getattr(importlib.import_module(mod), name)
+            except (ImportError, AttributeError, ValueError) as e:
+                raise ValueError(f"{what}.{key}: _target_ {spec['_target_']!r} does not import ({e})") from None
+            params = inspect.signature(target).parameters
+            if any(p.kind is p.VAR_KEYWORD for p in params.values()):
+                continue
+            bad = sorted(k for k in spec if not k.startswith("_") and k not in params)
+            if bad:
+                raise ValueError(f"{what}.{key}: {spec['_target_']} takes no argument(s) {bad}; expected a subset of "
+                                 f"{sorted(k for k in params if k != 'self')}")
 
 
 def build_callbacks(cfg, run_dir: Path, monitor: str) -> list:
