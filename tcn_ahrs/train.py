@@ -21,7 +21,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from .checkpoint import check_layout, checkpoint_meta, load_checkpoint
-from .config import EvalSection, TrainConfig, TrainScriptConfig, check_keys, plain
+from .config import EvalSection, TrainConfig, TrainScriptConfig, check_keys, check_types, plain
 from .config.train import TRAIN_GROUPS
 from .data import AHRSDataModule
 from .model.ahrs import LearnedAHRS
@@ -49,8 +49,10 @@ def check_config(cfg) -> None:
     ``crossval`` by scripts/crossval.py)."""
     check_keys(cfg, TrainScriptConfig, "train config", extra=TRAIN_GROUPS + ("crossval",))
     check_keys(cfg.train, TrainConfig, "train")
-    check_train_values(cfg.train)
+    check_train_values(cfg.train)  # numbers and their ranges first: the established messages
     check_keys(cfg.get("eval") or {}, EvalSection, "eval")
+    own = {k: v for k, v in cfg.items() if k not in TRAIN_GROUPS and k != "crossval"}
+    check_types(own, TrainScriptConfig, "")  # lists, booleans, strings (train.loss_js=16)
     check_groups(cfg)
 
 

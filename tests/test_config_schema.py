@@ -288,3 +288,27 @@ def test_class_defaults_are_the_schema_defaults():
         assert sig[f.name].default == getattr(cl, f.name), f.name
     model = LearnedAHRS(axes=9)
     assert model.loop == "closed" and model.calibration.gyro_error_net is not None
+
+
+def test_train_main_checks_types_and_group_entries_before_any_work():
+    """scripts/train.py's checks (tcn_ahrs.train.check_config): wrong types and misspelt
+    callbacks/logger arguments are one-line ValueErrors naming the key (exit 2 in the scripts)."""
+    from hydra import compose as _c
+
+    from tcn_ahrs.train import check_config
+
+    def cfg(*over):
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return _c("train", overrides=list(over))
+
+    check_config(cfg())
+    with pytest.raises(ValueError, match=r"^train\.loss_js: .*got 16"):
+        check_config(cfg("train.loss_js=16"))
+    with pytest.raises(ValueError, match=r"^eval\.plots: "):
+        check_config(cfg("eval.plots=maybe"))
+    with pytest.raises(ValueError, match=r"^eval: unknown key\(s\) \['splt'\]"):
+        check_config(cfg("+eval.splt=val"))
+    with pytest.raises(ValueError, match=r"callbacks\.best: .*takes no argument\(s\) \['monitr'\]"):
+        check_config(cfg("+callbacks.best.monitr=x"))
+    with pytest.raises(ValueError, match=r"logger\.csv: _target_ 'no_such_module\.Logger' does not import"):
+        check_config(cfg("logger.csv._target_=no_such_module.Logger"))

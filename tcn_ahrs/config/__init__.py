@@ -60,16 +60,20 @@ def check_keys(section: Mapping, schema, where: str, extra=()) -> None:
 
 def check_types(section: Mapping, schema, where: str) -> None:
     """``section`` merged into ``OmegaConf.structured(schema)``: a value of the wrong type (a
-    string for a number, a scalar for a list) is a ``ValueError`` naming the key."""
+    string for a number, a scalar for a list) is a ``ValueError`` naming the key (``where``:
+    the section's own dotted name, "" for a top level)."""
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
+    given = OmegaConf.create(plain(section))
     try:
-        OmegaConf.merge(OmegaConf.structured(schema), OmegaConf.create(plain(section)))
+        OmegaConf.merge(OmegaConf.structured(schema), given)
     except OmegaConfBaseException as e:
-        key = getattr(e, "full_key", None)
+        key = getattr(e, "full_key", None) or ""
         msg = str(e).strip().splitlines()[0]
-        raise ValueError(f"{where}{'.' + key if key else ''}: {msg}") from None
+        name = ".".join(p for p in (where, key) if p)
+        value = OmegaConf.select(given, key, default=None) if key else None
+        raise ValueError(f"{name}: {msg}" + (f" (got {plain(value)!r})" if key else "")) from None
 
 
 def check_section(section: Mapping, schema, where: str, extra=()) -> None:

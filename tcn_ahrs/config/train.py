@@ -58,7 +58,7 @@ class TrainConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     monitor: str = "val/aae_deg"  # checkpoint selection: val/aae_deg or val/loss
-    max_time: Optional[str] = "00:00:04:00"  # safety cap DD:HH:MM:SS; null: none
+    max_time: Any = "00:00:04:00"  # safety cap: "DD:HH:MM:SS" (or Lightning's {hours: 1}); null: none
     limit_train_batches: Optional[float] = None
 
 
