@@ -8,8 +8,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from tcn_ahrs.config import CONF_DIR
+
 REPO = Path(__file__).resolve().parents[1]
-CONF = REPO / "conf"
+CONF = CONF_DIR  # tcn_ahrs.config: the one place that names the config folder
 
 
 def _compose(name, overrides=()):

@@ -31,7 +31,14 @@ def broad_epoch(p: Dict[str, Any]) -> Dict[str, Any]:
             from ..data import SequenceStore, window_starts
             from ..datasets import load_split
 
-            data_cfg = OmegaConf.load(str(cfg_path))
+            from pathlib import Path
+
+            from ..config import conf_path
+
+            path = Path(str(cfg_path))
+            if not path.is_file() and path.parts and path.parts[0] == "conf":  # conf/...: the config folder's
+                path = conf_path(*path.parts[1:])
+            data_cfg = OmegaConf.load(str(path))
             seqs = load_split(data_cfg, "train")
             store = SequenceStore(seqs, int(p["axes"]))
             n_win = int(window_starts(store, window, stride).numel())
