@@ -25,7 +25,7 @@ from .config import EvalSection, TrainConfig, TrainScriptConfig, check_keys, che
 from .config.train import TRAIN_GROUPS
 from .data import AHRSDataModule
 from .model.ahrs import LearnedAHRS
-from .training.module import AHRSModule, _aae_deg  # noqa: F401  (re-exported)
+from .training.module import AHRSModule
 from .training.setup import (AUGMENT_KEYS, MONITORS, TRAIN_KEYS, TRAIN_VALUES, check_train_values,  # noqa: F401
                              choose_knobs_into_checkpoint, model_axes, rest_gyro_mean)
 from .training.trainer import (RESUME_KEYS, AppendingCSVLogger, RandomState, build_trainer, check_groups,  # noqa: F401
@@ -36,7 +36,7 @@ from .validate import set_threads
 __all__ = ["train_main", "check_config", "AHRSModule", "choose_knobs_into_checkpoint", "rest_gyro_mean",
            "check_train_values", "model_axes", "build_trainer", "RandomState", "find_resume_checkpoint",
            "resume_config", "trim_metrics", "command_line_overrides", "TRAIN_KEYS", "AUGMENT_KEYS",
-           "TRAIN_VALUES", "MONITORS", "RESUME_KEYS"]
+           "TRAIN_VALUES", "MONITORS", "RESUME_KEYS", "AppendingCSVLogger"]
 
 
 _T, _E = TrainConfig(), EvalSection()  # the defaults of keys a hand-built config may lack

@@ -3,7 +3,7 @@ project's default model (conf/model/ahrs.yaml: TCN calibration + learned closed 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Optional
+from typing import Dict, List, Optional
 
 
 @dataclass
