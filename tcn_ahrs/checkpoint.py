@@ -18,6 +18,7 @@ from typing import Any, Dict, Mapping, Optional, Sequence
 import torch
 from pytorch_lightning.plugins.io import TorchCheckpointIO
 
+from .config.model import ModelConfig
 from .model.ahrs import LearnedAHRS
 
 CHANNELS = {6: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"],
@@ -84,14 +85,23 @@ def layout_meta(model_cfg: Mapping, axes: int, data_name: str = "",
               "rate_hz": None if rate_hz is None else float(rate_hz)}
     if rate_range_hz:
         layout["rate_range_hz"] = [float(rate_range_hz[0]), float(rate_range_hz[1])]
-    return {"model": dict(model_cfg), "layout": layout, "data": str(data_name)}
+    model = dict(model_cfg)
+    # the loop always recorded: a record without one is read as a pre-closed-loop checkpoint
+    # (checkpoint_meta), while the default is the closed loop
+    model.setdefault("loop", ModelConfig.loop)
+    return {"model": model, "layout": layout, "data": str(data_name)}
 
 
 def checkpoint_meta(ckpt: Mapping, path="checkpoint") -> Dict[str, Any]:
     meta = ckpt.get("tcn_ahrs")
     if not isinstance(meta, Mapping) or "layout" not in meta or "model" not in meta:
         raise CheckpointError(f"{path}: not a tcn-ahrs checkpoint (no 'tcn_ahrs' model/layout record)")
-    return dict(meta)
+    meta = dict(meta)
+    if isinstance(meta["model"], Mapping) and "loop" not in meta["model"]:
+        # written before the closed loop existed (checkpoints/paper/*): the open loop, the model's
+        # only loop then (today's default is the closed loop, tcn_ahrs/config/model.py)
+        meta["model"] = {**dict(meta["model"]), "loop": "open"}
+    return meta
 
 
 def check_layout(ckpt: Mapping, axes: int, path="checkpoint") -> None:

@@ -19,7 +19,6 @@ import sys
 from typing import Callable, Dict, List, NamedTuple, Optional
 
 from .app import EXIT_USER_ERROR, check_overrides, user_errors
-from .app import leaf_keys, output_dir, refuse_earlier_output, staged_output  # noqa: F401  TEMP re-export until importers move to .app
 from .conf import SEARCH_PATH
 
 
@@ -72,7 +71,7 @@ def benchmark_main(cfg) -> None:
     _resolve(BENCHMARK_MODES[mode])(cfg)
 
 
-def _mode_as_override(args: List[str]) -> List[str]:
+def mode_as_override(args: List[str]) -> List[str]:
     """``benchmark MODE ...`` -> ``benchmark mode=MODE ...`` (Hydra rejects bare words)."""
     if args and not args[0].startswith("-") and "=" not in args[0]:
         mode = args[0]
@@ -108,7 +107,7 @@ def main(argv: Optional[List[str]] = None) -> None:
         _usage_error(f"unknown command {name!r}" + (f" (did you mean {near[0]!r}?)" if near else ""))
     command = COMMANDS[name]
     if name == "benchmark":
-        args = _mode_as_override(args)
+        args = mode_as_override(args)
     check_overrides(command.config, args)
     target = command.target
 

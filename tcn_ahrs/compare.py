@@ -51,6 +51,7 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import torch
 
+from .config import BenchmarkConfig, CompareConfig, conf_path, keys, plain
 from .columns import VARIANTS, MethodSpec, build_estimators, default_methods, method_specs  # noqa: F401  (re-exported)
 from .estimators import registry
 from .evaluate.reports import average_rows, compare_markdown
@@ -268,20 +269,14 @@ def _timed(e):
 # Hydra entry points
 # ===========================================================================
 
-COMPARE_KEYS = {"plugins", "on_calibrated", "methods", "peers", "both_axes", "variants", "tune", "tune_split", "tune_data", "tune_root", "tune_max_seconds_per_recording",
-                "tune_lead_seconds", "tune_recordings", "tune_max_batch", "ckpts", "ablation_ckpts", "out", "plots",
-                "trajectories", "align", "device", "threads", "verbose", "reanchor"}
-BENCHMARK_KEYS = COMPARE_KEYS | {"mode", "ckpt", "ckpt_label", "speed", "quick", "transfer", "lodo", "finetune"}  # speed/quick: speed mode; transfer, lodo, finetune: theirs
-
-
-def _plain(v):
-    from omegaconf import OmegaConf
-
-    return OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v
+# conf/compare.yaml's and conf/benchmark.yaml's top-level keys: tcn_ahrs/config/scripts.py
+COMPARE_KEYS = keys(CompareConfig)
+BENCHMARK_KEYS = keys(BenchmarkConfig)  # speed/quick: speed mode; transfer, lodo, finetune: theirs
+_C = CompareConfig()  # the defaults of keys a hand-built config may lack
 
 
 def _default_out(cfg, kind: str) -> Path:
-    from .cli import output_dir
+    from .app import output_dir
 
     return output_dir(cfg.get("out"), Path("runs") / kind / str(cfg.data.name))
 
@@ -296,9 +291,7 @@ def _tune_data_cfg(cfg):
         return cfg.data
     from omegaconf import OmegaConf
 
-    from .conf import CONF_DIR
-
-    path = CONF_DIR / "data" / f"{name}.yaml"
+    path = conf_path("data", f"{name}.yaml")
     if not path.is_file():
         raise ValueError(f"tune_data: no data config {name!r} (expected tcn_ahrs/conf/data/{name}.yaml)")
     dc = OmegaConf.load(path)
@@ -319,7 +312,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
         raise ValueError(f"{kind} config: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed_keys)}")
     set_threads(cfg.get("threads"))
     split = str(cfg.data.get("split", "test"))
-    tune_split = str(cfg.get("tune_split") or "train")
+    tune_split = str(cfg.get("tune_split") or _C.tune_split)
     if tune_split not in ("train", "trainval"):
         raise ValueError(f"tune_split: expected 'train' (the training parts of the training recordings) or "
                          f"'trainval', got {tune_split!r}: tuning never uses test/validation recordings")
@@ -329,13 +322,13 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
         raise ValueError(f"tune=true with data.split={split}: the evaluation would include the tuning recordings "
                          f"(tune_split={tune_split}); evaluate on test (or val with tune_split=train), or tune on "
                          "another dataset's training recordings (tune_data=broad)")
-    registry.load_plugins(_plain(cfg.get("plugins")))
-    methods = list(_plain(cfg.get("methods")) or default_methods())
+    registry.load_plugins(plain(cfg.get("plugins")))
+    methods = list(plain(cfg.get("methods")) or default_methods())
     if cfg.get("peers"):
         methods += [m for m in registry.methods("peer") if m not in methods]
-    ckpts = dict(_plain(cfg.get("ckpts")) or {})
+    ckpts = dict(plain(cfg.get("ckpts")) or {})
     if cfg.get("ckpt"):
-        ckpts.setdefault(str(cfg.get("ckpt_label") or "Proposed"), str(cfg.ckpt))
+        ckpts.setdefault(str(cfg.get("ckpt_label") or BenchmarkConfig.ckpt_label), str(cfg.ckpt))
     t0 = time.perf_counter()
     eval_seqs = [s for s in load_split(cfg.data, split) if s.has_gt]
     if not eval_seqs:
@@ -345,17 +338,20 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
     load_s = time.perf_counter() - t0
     out = _default_out(cfg, kind)
     res = compare(eval_seqs, tune_seqs, methods=methods, data_axes=int(cfg.data.get("axes", 9)),
-                  both_axes=bool(cfg.get("both_axes", True)), variants=list(_plain(cfg.get("variants")) or VARIANTS),
-                  tune=bool(cfg.get("tune")), ckpts=ckpts, ablation_ckpts=_plain(cfg.get("ablation_ckpts")) or {},
+                  both_axes=bool(cfg.get("both_axes", _C.both_axes)),
+                  variants=list(plain(cfg.get("variants")) or VARIANTS),
+                  tune=bool(cfg.get("tune")), ckpts=ckpts, ablation_ckpts=plain(cfg.get("ablation_ckpts")) or {},
                   out_dir=out, tune_max_seconds_per_recording=cfg.get("tune_max_seconds_per_recording"),
-                  tune_lead_seconds=float(cfg.get("tune_lead_seconds", 10.0)),
-                  tune_recordings=cfg.get("tune_recordings"), tune_max_batch=int(cfg.get("tune_max_batch", 128)),
-                  dataset=str(cfg.data.name), plots=bool(cfg.get("plots", False)),
-                  trajectories=bool(cfg.get("trajectories", False)), align=bool(cfg.get("align", True)),
-                  device=str(cfg.get("device", "cpu")), verbose=bool(cfg.get("verbose", False)),
-                  reanchor=cfg.get("reanchor"), on_calibrated=_plain(cfg.get("on_calibrated")) or None,
+                  tune_lead_seconds=float(cfg.get("tune_lead_seconds", _C.tune_lead_seconds)),
+                  tune_recordings=cfg.get("tune_recordings"),
+                  tune_max_batch=int(cfg.get("tune_max_batch", _C.tune_max_batch)),
+                  dataset=str(cfg.data.name), plots=bool(cfg.get("plots", _C.plots)),
+                  trajectories=bool(cfg.get("trajectories", _C.trajectories)),
+                  align=bool(cfg.get("align", _C.align)),
+                  device=str(cfg.get("device", _C.device)), verbose=bool(cfg.get("verbose", _C.verbose)),
+                  reanchor=cfg.get("reanchor"), on_calibrated=plain(cfg.get("on_calibrated")) or None,
                   extra={"split": split, "tune_split": tune_split if cfg.get("tune") else None,
-                         "config": _plain(cfg), "load_s": round(load_s, 2)})
+                         "config": plain(cfg), "load_s": round(load_s, 2)})
     print(f"results in {out}")
     print(average_rows(res))
     return res

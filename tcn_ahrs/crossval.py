@@ -18,6 +18,7 @@ from typing import Any, Dict, List, Tuple
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from .config import CrossvalSection, check_keys
 from .evaluate.reports import label as metric_label
 from .metrics import metric_keys
 
@@ -182,6 +183,7 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
     from .train import model_axes, train_main
 
     cv = cfg.crossval
+    check_keys(cv, CrossvalSection, "crossval")  # conf/crossval.yaml's section: tcn_ahrs/config/train.py
     if cv.get("untrained"):
         return untrained_main(cfg)
     folds, idx = _folds(cfg)

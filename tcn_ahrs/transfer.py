@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
 from .checkpoint import checkpoint_meta, load_checkpoint
-from .conf import CONF_DIR
+from .config import conf_path
 from .estimators import registry
 from .evaluate.runner import evaluate, jsonable
 
@@ -56,7 +56,7 @@ def own_datasets(data_name: str) -> List[str]:
     or its data alone."""
     from omegaconf import OmegaConf
 
-    p = CONF_DIR / "data" / f"{data_name}.yaml"
+    p = conf_path("data", f"{data_name}.yaml")
     if p.is_file():
         parts = (OmegaConf.to_container(OmegaConf.load(p), resolve=False) or {}).get("defaults") or []
         names = [str(d).split("@")[0] for d in parts if isinstance(d, str) and "@parts." in d]
@@ -161,7 +161,7 @@ def transfer_main(cfg) -> Dict[str, Any]:
     ``checkpoints/*.ckpt``), ``transfer.datasets`` (tcn_ahrs/conf/data names), ``transfer.baselines``."""
     from omegaconf import OmegaConf
 
-    conf = Path(__file__).resolve().parents[1] / "conf" / "data"
+    conf = conf_path("data")
     t = OmegaConf.to_container(cfg.get("transfer") or {}, resolve=True)
     ckpts = t.get("ckpts") or {p.stem: str(p) for p in sorted(Path("checkpoints").glob("*.ckpt"))}
     datasets = list(t.get("datasets") or DATASETS)

@@ -99,7 +99,7 @@ def test_numeric_train_values_are_checked_with_the_key_named(key, value, message
 def test_reanchor_must_be_a_positive_sample_count():
     from tcn_ahrs.estimators.learned import LearnedEstimator
 
-    model = LearnedAHRS(axes=6, mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]})
+    model = LearnedAHRS(axes=6, loop="open", mag_net="none", use_mag_term=False, tcn={"channels": [4, 4, 4, 4]})
     with pytest.raises(ValueError, match=r"reanchor: expected an integer >= 1, got -5"):
         LearnedEstimator(model, reanchor=-5)
 
@@ -443,7 +443,7 @@ def test_a_checkpoint_with_nan_weights_is_refused_at_load(tmp_path):
 
 
 def test_staged_output_is_all_or_nothing_and_never_mixes_runs(tmp_path):
-    from tcn_ahrs.cli import staged_output
+    from tcn_ahrs.app import staged_output
 
     out = tmp_path / "eval"
     with staged_output(out) as stage:

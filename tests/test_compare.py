@@ -300,12 +300,12 @@ def test_baseline_estimators_registry():
 
 
 def test_benchmark_dispatcher_mode_argument(capsys):
-    from tcn_ahrs.cli import _mode_as_override
+    from tcn_ahrs.cli import mode_as_override
 
-    assert _mode_as_override(["accuracy", "data=broad"]) == ["mode=accuracy", "data=broad"]
-    assert _mode_as_override(["data=broad"]) == ["data=broad"]
+    assert mode_as_override(["accuracy", "data=broad"]) == ["mode=accuracy", "data=broad"]
+    assert mode_as_override(["data=broad"]) == ["data=broad"]
     with pytest.raises(SystemExit) as e:
-        _mode_as_override(["sped"])
+        mode_as_override(["sped"])
     assert e.value.code == 2 and "unknown mode 'sped'" in capsys.readouterr().err
 
 

@@ -54,7 +54,7 @@ def test_the_float_policy_is_followed():
     assert seq.gyro.dtype == cv.STORAGE_DTYPE and seq.quat.dtype == cv.STORAGE_DTYPE
     quat, _ = Mahony().quat_batch([seq], [None])
     assert quat.dtype == cv.STATE_DTYPE
-    model = LearnedAHRS(axes=9, tcn={"channels": [4, 4, 4, 4]}).eval()
+    model = LearnedAHRS(axes=9, loop="open", tcn={"channels": [4, 4, 4, 4]}).eval()
     assert model_input(model, seq, "cpu").dtype == cv.NETWORK_DTYPE
     assert next(model.calibration.parameters()).dtype == cv.NETWORK_DTYPE
     imu = model_input(model, seq, "cpu")

@@ -192,7 +192,7 @@ def test_runner_says_where_the_estimate_starts_and_the_learned_model_reads_no_gr
     evaluate([Spy()], [seq], verbose=False)
     assert seen["index"] == 40
     np.testing.assert_allclose(seen["quat"], seq.quat[40])
-    est = LearnedEstimator(LearnedAHRS(axes=9, tcn={"channels": [4, 4, 4, 4]}))
+    est = LearnedEstimator(LearnedAHRS(axes=9, loop="open", tcn={"channels": [4, 4, 4, 4]}))
     with_gt = est.run(seq, seq.quat[40], 40).quat
     blind = replace(seq, quat=None, quat_valid=None, score_mask=None, meta=dict(seq.meta))
     np.testing.assert_array_equal(est.run(blind, seq.quat[40], 40).quat, with_gt)

@@ -16,6 +16,7 @@ from tcn_ahrs.export import (BatchAHRS, ExportError, StreamingAHRS, _hamilton_ta
                              build_metadata, export_batch, export_checkpoint, export_streaming,
                              file_sha256, fuse_model, quat_cumprod, quat_integrate, read_metadata,
                              streaming_path)
+from tcn_ahrs.config.model import PAPER_MODEL  # the paper's open-loop model
 from tcn_ahrs.model.ahrs import LearnedAHRS
 from tolerances import INTEGRATE_F64, PARITY_F64, ROTATION_F64, SCAN_F64
 
@@ -35,6 +36,7 @@ CONFIGS = {
     # no ECF (DIG-like): plain integration of the calibrated gyro
     "dig_like": dict(axes=9, variant="dig_like", acc_net="none", mag_net="none", ecf=False),
 }
+CONFIGS = {name: {**PAPER_MODEL, **c} for name, c in CONFIGS.items()}  # the paper's open loop and TCN
 
 
 def randomize(model: LearnedAHRS, seed: int = 1) -> LearnedAHRS:
@@ -169,7 +171,7 @@ def test_float64_network_matches_float64_eager_model():
 def test_streaming_history_is_the_receptive_field():
     """A change older than the receptive field does not reach the network output (ring buffers
     hold exactly the needed history); one inside it does."""
-    model = randomize(LearnedAHRS(axes=9, ecf=False))
+    model = randomize(LearnedAHRS(**PAPER_MODEL, axes=9, ecf=False))
     stream = _script(StreamingAHRS(fuse_model(model), build_metadata(model, "streaming")))
     rf = model.receptive_field
     n = rf + 50
@@ -185,7 +187,7 @@ def test_streaming_history_is_the_receptive_field():
 
 
 def test_bad_inputs_raise_clear_errors():
-    model = randomize(LearnedAHRS(axes=6, mag_net="none", use_mag_term=False))
+    model = randomize(LearnedAHRS(**PAPER_MODEL, axes=6, mag_net="none", use_mag_term=False))
     fused = fuse_model(model)
     batch = _script(BatchAHRS(fused, build_metadata(model, "batch")))
     stream = _script(StreamingAHRS(fused, build_metadata(model, "streaming")))

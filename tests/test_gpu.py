@@ -8,6 +8,7 @@ from tcn_ahrs import so3
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.filters.ecf import ecf
 from tcn_ahrs.losses import increment_loss
+from tcn_ahrs.config.model import PAPER_MODEL  # the paper's open-loop model
 from tcn_ahrs.model.ahrs import LearnedAHRS
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")
@@ -24,7 +25,7 @@ def _batch(device, n=600):
 @cuda
 def test_model_loss_and_gradients_match_cpu():
     torch.manual_seed(0)
-    model = LearnedAHRS(axes=9).eval()
+    model = LearnedAHRS(axes=9, **PAPER_MODEL).eval()
     outs = {}
     for dev in ("cpu", "cuda"):
         m = model.to(dev)

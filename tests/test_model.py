@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from tcn_ahrs import so3
+from tcn_ahrs.config.model import PAPER_MODEL  # the paper's open-loop model
 from tcn_ahrs.model.ahrs import LearnedAHRS
 from tcn_ahrs.model.ecf import acc_error, mag_error, previous_attitude
 from tcn_ahrs.model.tcn import TCN
@@ -26,7 +27,7 @@ def _imu(b=2, n=600, axes=9, seed=0):
 
 
 def test_untrained_model_outputs_raw_readings():
-    model = LearnedAHRS(axes=9)
+    model = LearnedAHRS(**PAPER_MODEL, axes=9)
     model.calibration.set_input_stats(torch.randn(9), torch.rand(9) + 0.5)
     imu = _imu()
     for mode in (model.train, model.eval):
@@ -67,8 +68,8 @@ def test_tcn_is_causal_and_sees_its_receptive_field():
 
 
 def test_parameter_count_close_to_paper():
-    n9 = LearnedAHRS(axes=9).num_parameters()
-    n6 = LearnedAHRS(axes=6, mag_net="none", use_mag_term=False).num_parameters()
+    n9 = LearnedAHRS(**PAPER_MODEL, axes=9).num_parameters()
+    n6 = LearnedAHRS(**PAPER_MODEL, axes=6, mag_net="none", use_mag_term=False).num_parameters()
     print(f"\ntrainable parameters: 9-axis {n9:,} (paper: 244,877), 6-axis {n6:,}")
     assert abs(n9 - 244_877) / 244_877 < 0.10
 
@@ -76,7 +77,7 @@ def test_parameter_count_close_to_paper():
 def _ecf_only_model(use_acc, use_mag, gain=1.0, preintegration="raw"):
     # raw pre-integration: with a zero gyro, C̃ stays at the initial attitude, which makes
     # the expected open-loop correction analytic
-    m = LearnedAHRS(axes=9, gyro_net="none", acc_net="none", mag_net="none", use_acc_term=use_acc,
+    m = LearnedAHRS(**PAPER_MODEL, axes=9, gyro_net="none", acc_net="none", mag_net="none", use_acc_term=use_acc,
                     use_mag_term=use_mag, init_gain=gain, preintegration=preintegration).double()
     return m
 
@@ -126,7 +127,7 @@ def test_previous_attitude_is_shifted_integration():
 
 
 def test_run_sequence_matches_forward_from_start():
-    model = LearnedAHRS(axes=9, preintegration="two_pass").eval()
+    model = LearnedAHRS(**PAPER_MODEL, axes=9, preintegration="two_pass").eval()
     torch.nn.init.normal_(model.calibration.gyro_error_net.out.weight, std=0.1)
     imu = _imu(1, 700)
     dt = torch.full((1, 700), 0.01)
@@ -178,12 +179,12 @@ def test_reanchor_segments_join_and_reset_the_preintegration():
                      + 0.2 * torch.randn(1, n, 3), MAG_NAV.float().expand(1, n, 3)], -1)
     dt = torch.full((1, n), 0.01)
     r0 = so3.exp(torch.tensor([[0.1, -0.2, 0.3]]))
-    plain = LearnedAHRS(axes=9, ecf=False).eval()
+    plain = LearnedAHRS(**PAPER_MODEL, axes=9, ecf=False).eval()
     with torch.no_grad():
         a = plain.run_sequence(imu, dt, r0, 5)["rot"]
         b = plain.run_sequence(imu, dt, r0, 5, reanchor=100)["rot"]
     torch.testing.assert_close(a, b, atol=1e-10, rtol=0)
-    model = LearnedAHRS(axes=9, init_gain=1.0).eval()
+    model = LearnedAHRS(**PAPER_MODEL, axes=9, init_gain=1.0).eval()
     with torch.no_grad():
         single = model.run_sequence(imu, dt, r0, 5)
         again = model.run_sequence(imu, dt, r0, 5, reanchor=None)

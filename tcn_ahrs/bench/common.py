@@ -131,9 +131,11 @@ def synthetic_imu(batch: int, n: int, axes: int, rate: float, seed: int = 0,
 
 
 def model_config(axes: int) -> Dict[str, Any]:
-    """The paper's open-loop model (``LearnedAHRS`` defaults: 16-32-64-128 TCNs, open-loop ECF)
-    for ``axes`` 9 or 6 — the training section's model."""
-    cfg = {"variant": f"ahrs{axes}", "axes": axes}
+    """The paper's open-loop model (:data:`tcn_ahrs.config.model.PAPER_MODEL`: 16-32-64-128 TCNs,
+    open-loop ECF) for ``axes`` 9 or 6 — the training section's model."""
+    from ..config.model import PAPER_MODEL
+
+    cfg = {**PAPER_MODEL, "variant": f"ahrs{axes}", "axes": axes}
     if axes == 6:
         cfg.update(mag_net="none", use_mag_term=False)
     return cfg
@@ -143,7 +145,9 @@ def shipped_config(axes: int) -> Dict[str, Any]:
     """The default model of ``tcn_ahrs/conf/model/ahrs.yaml`` (the learned closed loop) for ``axes``."""
     from omegaconf import OmegaConf
 
-    cfg = OmegaConf.load(Path(__file__).resolve().parents[2] / "conf" / "model" / "ahrs.yaml")
+    from ..config import conf_path
+
+    cfg = OmegaConf.load(conf_path("model", "ahrs.yaml"))
     cfg = OmegaConf.to_container(OmegaConf.merge(cfg, {"axes": axes, "variant": f"ahrs{axes}"}), resolve=True)
     cfg.pop("defaults", None)
     if axes == 6:

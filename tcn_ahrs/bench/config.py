@@ -6,53 +6,13 @@ from typing import Any, Dict, Mapping, Optional
 
 import torch
 
+from ..config import defaults
+from ..config.speed import SPEED_QUICK, SpeedConfig
 
+# the defaults and their meaning: tcn_ahrs/config/speed.py (one place)
+DEFAULTS: Dict[str, Any] = defaults(SpeedConfig)
 
-DEFAULTS: Dict[str, Any] = {
-    "sections": ["train", "inference", "streaming", "filters"],
-    "seed": 0,
-    "train": {
-        # closed: the shipped recipe's step (experiment=broad9_cl: 32 streams x 1000-sample chunks
-        # after the networks' context, truncated backpropagation through the closed loop, 12
-        # epochs); paper: the open-loop model on 16 x 3000 windows, 1800 epochs (model=paper)
-        "model": "closed",
-        "axes": 9,
-        "window": 1000,
-        "batch_size": 32,
-        "stride": 500,             # window-start spacing; epoch = all starts (tcn_ahrs.data.window_starts)
-        "epochs": 12,              # the shipped CPU schedule (checkpoints/closed_loop/broad9.md)
-        "rate": 285.71,            # BROAD sampling rate, Hz (synthetic data)
-        "variants_cpu": ["eager", "tensor_scan", "threads1", "bf16", "compile"],
-        # model=paper also: loss_fp32 (CPU); fp32, tf32, cuda_graphs (CUDA)
-        "variants_cuda": ["eager", "bf16", "compile"],
-        "warmup": 1,               # untimed steps per variant (compile: + its compile call)
-        "steps": 3,                # timed steps per variant (at least 1) ...
-        "max_seconds": 25.0,       # ... unless this many seconds of timed steps passed
-        "compile_timeout_s": 300,  # hard bound on the compile subprocess
-        "curve_variants": ["bf16"],  # loss curves checked against the first variant's
-        "curve_steps": 10,
-        "threads": None,           # torch threads (None: torch's default = all cores)
-        "data_config": "conf/data/broad.yaml",  # for the exact epoch size; None: constant
-        "split_samples": 601_181,  # fallback: 16 trials x 70 % x ~190 s x 285.7 Hz
-        "split_recordings": 16,
-    },
-    # the shipped checkpoints (default architecture with synthetic weights where one is missing)
-    "inference": {"samples": 6000, "rate": 100.0, "warmup": 3, "repeats": 20, "max_seconds": 10.0, "threads": 1,
-                  "ckpt": "checkpoints/closed_loop/broad9.ckpt", "goal_ms": 15.0},
-    "streaming": {"axes": [9, 6], "samples": 3000, "warmup": 300, "rate": 100.0, "threads": 1, "chunk": 100,
-                  "ckpts": {"9": "checkpoints/closed_loop/broad9.ckpt", "6": "checkpoints/closed_loop/tumvi6.ckpt"}, "riann": True,
-                  "goal_samples_per_s": 25_000.0, "goal_chunk_samples_per_s": 1_000_000.0},
-    "filters": {"samples": 6000, "rate": 100.0, "batches": [1, 64], "repeats": 1, "threads": 1,
-                "filters": ["ecf", "mahony", "madgwick", "eskf"], "peers": ["vqf", "imufusion"]},
-}
-
-QUICK: Dict[str, Any] = {
-    "train": {"window": 256, "batch_size": 2, "variants_cpu": ["eager", "bf16"],
-              "variants_cuda": ["eager", "bf16"], "warmup": 1, "steps": 1, "curve_steps": 2, "data_config": None},
-    "inference": {"samples": 600, "warmup": 1, "repeats": 2},
-    "streaming": {"axes": [9], "samples": 100, "warmup": 10, "chunk": 10},
-    "filters": {"samples": 200, "batches": [1, 4]},
-}
+QUICK: Dict[str, Any] = SPEED_QUICK
 
 TOP_LEVEL = ("device", "out", "quick")
 

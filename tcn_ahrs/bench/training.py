@@ -31,7 +31,14 @@ def broad_epoch(p: Dict[str, Any]) -> Dict[str, Any]:
             from ..data import SequenceStore, window_starts
             from ..datasets import load_split
 
-            data_cfg = OmegaConf.load(str(cfg_path))
+            from pathlib import Path
+
+            from ..config import conf_path
+
+            path = Path(str(cfg_path))
+            if not path.is_file() and path.parts and path.parts[0] == "conf":  # conf/...: the config folder's
+                path = conf_path(*path.parts[1:])
+            data_cfg = OmegaConf.load(str(path))
             seqs = load_split(data_cfg, "train")
             store = SequenceStore(seqs, int(p["axes"]))
             n_win = int(window_starts(store, window, stride).numel())
@@ -72,13 +79,13 @@ def static_increment_loss(omega: Tensor, dt: Tensor, rot_gt: Tensor, valid: Tens
 
 def _train_setup(p: Dict[str, Any], device: str, seed: int):
     from ..data import augment  # noqa: F401  (imported here so a broken import fails early)
-    from ..train import AHRSModule
+    from ..training.module import AHRSModule
 
     torch.manual_seed(seed)
     axes = int(p["axes"])
     closed = p.get("model", "closed") == "closed"
     cfg = shipped_config(axes) if closed else model_config(axes)
-    module = AHRSModule(cfg, axes, window=int(p["window"]), lr=1e-3 if closed else 0.01)
+    module = AHRSModule(cfg, axes, window=int(p["window"]), lr=1e-3 if closed else 0.01, ema_decay=0.0)
     model = module.model.to(device).train()
     if model.closed is not None:
         model.closed.set_rate(float(p["rate"]))

@@ -30,6 +30,7 @@ from typing import Any, Dict, List, Mapping, Optional
 
 import numpy as np
 
+from ..config import plain
 from ..sequence import DataError, ImuSequence, ground_truth_agreement, rest_mask
 
 SPLITS = ("train", "val", "trainval", "test", "all")
@@ -47,16 +48,6 @@ def _get(cfg: Mapping, key: str, default: Any = None) -> Any:
     return default if v is None else v
 
 
-def _plain(v: Any) -> Any:
-    """OmegaConf containers -> plain Python (lists, dicts)."""
-    try:
-        from omegaconf import OmegaConf
-
-        if OmegaConf.is_config(v):
-            return OmegaConf.to_container(v, resolve=True)
-    except ImportError:  # pragma: no cover - hydra/omegaconf is a dependency
-        pass
-    return v
 
 
 def builtin_datasets() -> List[str]:
@@ -124,7 +115,7 @@ def split_recording(seq: ImuSequence, train_part: Mapping) -> tuple:
     ``{seconds: s}`` (samples with ``time - time[0] < s`` train; EuRoC/TUM VI/OxIOD: 80).
     Either part is ``None`` when it would hold fewer than 2 samples.
     """
-    tp = _plain(train_part) or {}
+    tp = plain(train_part) or {}
     n = len(seq)
     if "fraction" in tp and tp["fraction"] is not None:
         cut = int(round(float(tp["fraction"]) * n))
@@ -170,7 +161,7 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
     fold = _get(data_cfg, "fold")
     held_out: List[str] = []
     if fold is not None:
-        folds = list(_plain(_get(data_cfg, "folds", [])) or [])
+        folds = list(plain(_get(data_cfg, "folds", [])) or [])
         if not (0 <= int(fold) < len(folds)):
             raise DataError("data config", "fold", f"expected an index into data.folds (0..{len(folds) - 1}), "
                                                    f"got {fold!r}")
@@ -179,7 +170,7 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
         names = available
     elif fold is not None and split in ("train", "val"):
         # leave-recordings-out: the fold's recordings validate, whole; the others train, whole
-        train_names = [str(r) for r in (_plain(_get(data_cfg, "train", [])) or [])]
+        train_names = [str(r) for r in (plain(_get(data_cfg, "train", [])) or [])]
         names = held_out if split == "val" else [r for r in train_names if r not in held_out]
         missing = [r for r in names if r not in available]
         if missing:
@@ -188,7 +179,7 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
         names = [r for r in names if r in available]
     else:
         key = "test" if split == "test" else "train"
-        names = list(_plain(_get(data_cfg, key, [])) or [])
+        names = list(plain(_get(data_cfg, key, [])) or [])
         missing = [r for r in names if r not in available]
         if missing:
             warnings.warn(f"{name}: {key} recordings absent under {root}, skipped: {', '.join(missing)}",
@@ -197,7 +188,7 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
     seqs: List[ImuSequence] = []
     for rec in names:
         if getattr(mod, "WANTS_CONFIG", False):  # e.g. the ROS bag topics
-            seq = mod.load_recording(root, rec, cfg=_plain(data_cfg))
+            seq = mod.load_recording(root, rec, cfg=plain(data_cfg))
         else:
             seq = mod.load_recording(root, rec)
         seq.meta.setdefault("recording", rec)
@@ -216,12 +207,12 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
 def data_parts(data_cfg: Mapping) -> Dict[str, Dict[str, Any]]:
     """{part: its data config} of a multi-dataset config (``parts`` minus ``leave_out``), each
     with the top-level ``axes``; a single dataset: {its name: its config}."""
-    parts = _plain(_get(data_cfg, "parts")) or {}
+    parts = plain(_get(data_cfg, "parts")) or {}
     if not parts:
-        return {str(_get(data_cfg, "name")): dict(_plain(data_cfg))}
+        return {str(_get(data_cfg, "name")): dict(plain(data_cfg))}
     if not isinstance(parts, Mapping):
         raise DataError("data config", "parts", f"expected a mapping {{dataset: data config}}, got {type(parts).__name__}")
-    leave = _plain(_get(data_cfg, "leave_out")) or []
+    leave = plain(_get(data_cfg, "leave_out")) or []
     leave = [leave] if isinstance(leave, str) else [str(x) for x in leave]
     unknown = [x for x in leave if x not in parts]
     if unknown:

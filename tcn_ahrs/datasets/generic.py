@@ -44,19 +44,22 @@ flipped accelerometer, x,y,z,w quaternions or a ground truth that is not z-up ar
 """
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
 from typing import Dict, List, Optional
 
 import numpy as np
 
 from .. import conventions as conv
+from ..config.data import GenericDeclarations
 from ..sequence import DataError, ImuSequence
 from ._common import check_finite, check_increasing, matrix_to_quat, open_hdf5, quat_to_matrix, read_numeric_csv
 
 SUFFIXES = (".csv", ".h5", ".hdf5")
 AXES = ("x", "y", "z")
-ATTR_KEYS = ("time_unit", "gyr_unit", "acc_unit", "acc_sign", "mag_unit", "quat_order", "nav_frame",
-             "gt_body_from_imu", "rate")
+# the declarations, their meaning and defaults: tcn_ahrs/config/data.py (GenericDeclarations)
+ATTR_KEYS = tuple(f.name for f in fields(GenericDeclarations))
+_DECL = GenericDeclarations()
 
 
 def list_recordings(root) -> List[str]:
@@ -142,7 +145,7 @@ def _read_csv(path: Path):
         "score": None,
     }
     attrs = _read_sidecar(path)
-    order = str(attrs.get("quat_order", "wxyz")).lower()
+    order = str(attrs.get("quat_order", _DECL.quat_order)).lower()
     if order not in ("wxyz", "xyzw"):
         raise DataError(str(path), "quat_order", f"expected 'wxyz' or 'xyzw', got {order!r}")
     arrays["quat"] = take([f"quat_{c}" for c in order], False)
@@ -175,7 +178,7 @@ def _read_hdf5(path: Path):
 
         attrs = {k: v for k, v in attrs.items()
                  if k in ATTR_KEYS or difflib.get_close_matches(str(k), ATTR_KEYS, n=1, cutoff=0.75)}
-    order = str(attrs.get("quat_order", "wxyz")).lower()
+    order = str(attrs.get("quat_order", _DECL.quat_order)).lower()
     if order not in ("wxyz", "xyzw"):
         raise DataError(src, "quat_order", f"expected 'wxyz' or 'xyzw', got {order!r}")
     if arrays["quat"] is not None and order == "xyzw":
@@ -240,7 +243,7 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     src = str(path)
     check_declarations(src, attrs)
     t = np.asarray(a["t"], dtype=np.float64).reshape(-1)
-    t = _convert(src, "time_unit", attrs.get("time_unit", "s"), _TIME)(t)
+    t = _convert(src, "time_unit", attrs.get("time_unit", _DECL.time_unit), _TIME)(t)
     n = t.shape[0]
     if n < 2:
         raise DataError(src, "t", f"expected at least 2 samples, got {n}")
@@ -248,13 +251,13 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     for key, width in (("gyr", 3), ("acc", 3), ("mag", 3), ("quat", 4)):
         if a[key] is not None and (a[key].ndim != 2 or a[key].shape != (n, width)):
             raise DataError(src, key, f"expected shape ({n}, {width}), got {a[key].shape}")
-    gyro = _convert(src, "gyr_unit", attrs.get("gyr_unit", "rad/s"), _GYR)(check_finite(src, "gyr", a["gyr"]))
+    gyro = _convert(src, "gyr_unit", attrs.get("gyr_unit", _DECL.gyr_unit), _GYR)(check_finite(src, "gyr", a["gyr"]))
     acc = check_finite(src, "acc", a["acc"])
-    acc = _convert(src, "acc_unit", attrs.get("acc_unit", "m/s^2"), _ACC)(acc)
-    acc = _convert(src, "acc_sign", attrs.get("acc_sign", "specific_force"), _ACC_SIGN)(acc)
+    acc = _convert(src, "acc_unit", attrs.get("acc_unit", _DECL.acc_unit), _ACC)(acc)
+    acc = _convert(src, "acc_sign", attrs.get("acc_sign", _DECL.acc_sign), _ACC_SIGN)(acc)
     mag = None
     if a["mag"] is not None:
-        mag = _convert(src, "mag_unit", attrs.get("mag_unit", "uT"), _MAG)(check_finite(src, "mag", a["mag"]))
+        mag = _convert(src, "mag_unit", attrs.get("mag_unit", _DECL.mag_unit), _MAG)(check_finite(src, "mag", a["mag"]))
     quat = valid = None
     if a["quat"] is not None:
         quat = np.asarray(a["quat"], dtype=np.float64)
@@ -262,7 +265,7 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
         norms = np.linalg.norm(quat[valid], axis=1)
         if norms.size and np.max(np.abs(norms - 1.0)) > 1e-2:  # before any declared frame renormalises them
             raise DataError(src, "quat", f"expected unit quaternions, found norm {norms.min():.4f}..{norms.max():.4f}")
-        c_nav = _rotation(src, "nav_frame", attrs.get("nav_frame", "ENU"), quaternion=False)
+        c_nav = _rotation(src, "nav_frame", attrs.get("nav_frame", _DECL.nav_frame), quaternion=False)
         c_body = _rotation(src, "gt_body_from_imu", attrs.get("gt_body_from_imu"), quaternion=True)
         if (c_nav is not None or c_body is not None) and valid.any():
             # ground truth nav'_from_body' -> ENU nav_from_imu: C = C_enu_from_nav' C_gt C_body'_from_imu
@@ -281,7 +284,7 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
             raise DataError(src, "score", f"expected shape ({n},), got {s.shape}")
         score = np.nan_to_num(s, nan=0.0) > 0.5
     try:
-        rate = float(attrs.get("rate", 0.0) or 0.0)
+        rate = float(attrs.get("rate", _DECL.rate) or 0.0)
     except (TypeError, ValueError):
         raise DataError(src, "rate", f"expected the nominal rate as a number in Hz, got {attrs.get('rate')!r}") from None
     if rate:

@@ -8,12 +8,14 @@ import torch
 from omegaconf import DictConfig
 
 from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
-from ..cli import output_dir, refuse_earlier_output, staged_output
+from ..config import EvaluateConfig, keys
+from ..app import output_dir, refuse_earlier_output, staged_output
 from ..validate import check_keys, set_threads
 from .reports import print_table
 from .runner import evaluate
 
-EVAL_KEYS = {"run_dir", "ckpt", "out", "baselines", "plugins", "device", "plots", "trajectories", "name", "threads", "align", "reanchor", "other_rate", "overwrite"}
+EVAL_KEYS = keys(EvaluateConfig)  # conf/evaluate.yaml's top level: tcn_ahrs/config/scripts.py
+_D = EvaluateConfig()  # the defaults of keys a hand-built config may lack
 
 
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
@@ -37,7 +39,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     # run_dir= (a training run): its eval/ subfolder, never the run's own files
     explicit = cfg.get("out") or (str(Path(str(cfg.run_dir)) / "eval") if cfg.get("run_dir") else None)
     out = str(output_dir(explicit, Path("runs") / "evaluate"))
-    refuse_earlier_output(out, bool(cfg.get("overwrite", False)), "evaluate")  # before any work
+    refuse_earlier_output(out, bool(cfg.get("overwrite", _D.overwrite)), "evaluate")  # before any work
     ck = load_checkpoint(cfg.ckpt)
     axes = int(cfg.data.get("axes", 9))
     if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
@@ -50,16 +52,18 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     if not seqs:
         raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
                          f"'{cfg.data.split}' (root {cfg.data.get('root')})")
-    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or "Learned AHRS"), device=str(cfg.get("device", "cpu")),
-                               reanchor=cfg.get("reanchor"), other_rate=str(cfg.get("other_rate", "backbone")))
+    learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
+                               device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
+                               other_rate=str(cfg.get("other_rate", _D.other_rate)))
     from ..estimators.registry import baseline_estimators, load_plugins
 
     load_plugins(cfg.get("plugins"))
     estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
-    with staged_output(out, bool(cfg.get("overwrite", False)), "evaluate") as stage:
+    with staged_output(out, bool(cfg.get("overwrite", _D.overwrite)), "evaluate") as stage:
         res = evaluate(estimators, seqs, out_dir=stage, axes=axes, dataset=str(cfg.data.name),
-                       plots=bool(cfg.get("plots", True)), trajectories=bool(cfg.get("trajectories", True)),
-                       align=bool(cfg.get("align", True)))
+                       plots=bool(cfg.get("plots", _D.plots)),
+                       trajectories=bool(cfg.get("trajectories", _D.trajectories)),
+                       align=bool(cfg.get("align", _D.align)))
     print(f"results in {out}")
     print_table(res)
     return res

@@ -262,12 +262,14 @@ def read_metadata(path) -> Dict[str, Any]:
     return json.loads(extra["metadata.json"])
 
 
-KEYS = {"ckpt", "out", "mode", "rate", "net_dtype", "overwrite"}
 
 
 def export_main(cfg) -> Dict[str, Path]:
     """``tcn-ahrs export ckpt=PATH out=FILE.pt [mode=batch|streaming|both] [rate=HZ]``
     (``tcn_ahrs/conf/export.yaml``): writes the files and prints one line per file from its metadata."""
+    from ..config import ExportConfig, keys
+
+    KEYS = keys(ExportConfig)  # tcn_ahrs/conf/export.yaml's keys: tcn_ahrs/config/scripts.py
     unknown = set(cfg) - KEYS
     if unknown:
         raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")

@@ -32,18 +32,16 @@ from ..conventions import STATE_DTYPE
 from .calibration import Calibration
 from .closed_loop import ClosedLoopFilter
 from .ecf import OpenLoopECF
+from ..config import defaults, keys
+from ..config.model import LOOPS, ClosedLoopConfig, ErrorScaleConfig, ModelConfig, ResidualConfig, TCNConfig
 from .residual import RESIDUAL_KEYS, BackboneLoop, ResidualCalibration
 
-# Every key a model config may have (a misspelt key is an error, see from_config).
-MODEL_KEYS = {
-    "variant", "axes", "gyro_net", "acc_net", "mag_net", "gyro_input", "use_acc_term",
-    "use_mag_term", "ecf", "preintegration", "init_gain", "error_scale", "tcn",
-    "loop", "trust", "closed_loop", "residual",
-}
-LOOPS = ("open", "closed", "backbone")
-CLOSED_LOOP_KEYS = {"acc_gain", "mag_gain", "bias_gain", "rest_time_constant", "rest_time", "rest_gyro", "rest_acc",
-                    "acc_reject", "mag_min", "mag_max"}
-TCN_KEYS = {"channels", "kernel_size", "dilations", "dropout"}
+# Every key a model config may have (a misspelt key is an error, see from_config): the fields of
+# the schemas in tcn_ahrs/config/model.py, where each default is written once.
+MODEL_KEYS = keys(ModelConfig)
+CLOSED_LOOP_KEYS = keys(ClosedLoopConfig)
+TCN_KEYS = keys(TCNConfig)
+_D = ModelConfig()
 
 
 class LearnedAHRS(nn.Module):
@@ -52,17 +50,20 @@ class LearnedAHRS(nn.Module):
     Args: see :data:`MODEL_KEYS`; ``variant`` is only a label saved with checkpoints.
     """
 
-    def __init__(self, axes: int = 9, variant: str = "ahrs9", gyro_net: str = "tcn",
-                 acc_net: str = "tcn", mag_net: str = "tcn", gyro_input: str = "all",
-                 use_acc_term: bool = True, use_mag_term: bool = True, ecf: bool = True,
-                 preintegration: str = "two_pass", init_gain: float = 0.05,
+    def __init__(self, axes: int = 9, variant: str = _D.variant, gyro_net: str = _D.gyro_net,
+                 acc_net: str = _D.acc_net, mag_net: str = _D.mag_net, gyro_input: str = _D.gyro_input,
+                 use_acc_term: bool = _D.use_acc_term, use_mag_term: bool = _D.use_mag_term, ecf: bool = _D.ecf,
+                 preintegration: str = _D.preintegration, init_gain: float = _D.init_gain,
                  error_scale: Optional[Mapping[str, float]] = None, tcn: Optional[Mapping] = None,
-                 loop: str = "open", trust: Optional[bool] = None,
+                 loop: str = _D.loop, trust: Optional[bool] = _D.trust,
                  closed_loop: Optional[Mapping[str, float]] = None,
                  residual: Optional[Mapping[str, Any]] = None):
         super().__init__()
         if loop not in LOOPS:
             raise ValueError(f"model config: loop {loop!r}: expected one of {LOOPS}")
+        # unset sections: the schemas' defaults (tcn_ahrs/config/model.py), key by key
+        tcn = {**defaults(TCNConfig), **dict(tcn or {})}
+        error_scale = {**defaults(ErrorScaleConfig), **dict(error_scale or {})}
         self.axes = int(axes)
         self.variant = str(variant)
         self.loop = str(loop) if (ecf or loop == "backbone") else "open"
@@ -76,16 +77,17 @@ class LearnedAHRS(nn.Module):
             if bad:
                 raise ValueError(f"model.residual config: unknown key(s) {sorted(bad)}; "
                                  f"expected a subset of {sorted(RESIDUAL_KEYS)}")
-            self.calibration = ResidualCalibration(self.axes, dict(tcn or {}), float(res.get("gyro_scale", 0.1)),
-                                                   float(res.get("gyro_clip", 0.005)))
+            res = {**defaults(ResidualConfig), **res}
+            self.calibration = ResidualCalibration(self.axes, dict(tcn or {}), float(res["gyro_scale"]),
+                                                   float(res["gyro_clip"]))
             self.backbone = BackboneLoop(use_mag=use_mag_term and self.axes == 9,
-                                         acc_trust_scale=float(res.get("acc_trust_scale", 1.0)),
-                                         mag_trust_scale=float(res.get("mag_trust_scale", 1.0)),
-                                         bias_trust_scale=float(res.get("bias_trust_scale", 1.0)),
-                                         trust_max=float(res.get("trust_max", 2.0)),
-                                         trust_weight=float(res.get("trust_weight", 1.0)),
-                                         bias_prior=float(res.get("bias_prior", 1.0)),
-                                         backbone=dict(res.get("backbone") or {}))
+                                         acc_trust_scale=float(res["acc_trust_scale"]),
+                                         mag_trust_scale=float(res["mag_trust_scale"]),
+                                         bias_trust_scale=float(res["bias_trust_scale"]),
+                                         trust_max=float(res["trust_max"]),
+                                         trust_weight=float(res["trust_weight"]),
+                                         bias_prior=float(res["bias_prior"]),
+                                         backbone=dict(res["backbone"] or {}))
             return
         self.calibration = Calibration(self.axes, gyro_net, acc_net, mag_net, gyro_input,
                                        dict(error_scale or {}), dict(tcn or {}), trust=trust)
@@ -94,6 +96,7 @@ class LearnedAHRS(nn.Module):
         if bad:
             raise ValueError(f"model.closed_loop config: unknown key(s) {sorted(bad)}; "
                              f"expected a subset of {sorted(CLOSED_LOOP_KEYS)}")
+        cl = {**defaults(ClosedLoopConfig), **cl}
         if ecf and self.loop == "open":
             self.ecf = OpenLoopECF(use_acc=use_acc_term, use_mag=use_mag_term and self.axes == 9,
                                    init_gain=init_gain, preintegration=preintegration)

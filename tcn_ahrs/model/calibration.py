@@ -23,6 +23,8 @@ from typing import Dict, Optional
 import torch
 from torch import Tensor, nn
 
+from ..config import defaults
+from ..config.model import ErrorScaleConfig
 from .tcn import TCN, ConstantError
 
 NET_KINDS = ("tcn", "constant", "none")
@@ -95,7 +97,7 @@ class Calibration(nn.Module):
         self.axes = axes
         self.gyro_input = gyro_input
         tcn_kwargs = dict(tcn or {})
-        scale = {"gyro": 0.02, "acc": 1.0, "mag": 1.0}
+        scale = defaults(ErrorScaleConfig)  # tcn_ahrs/config/model.py
         scale.update(error_scale or {})
         self.error_scale = scale
         self.register_buffer("input_mean", torch.zeros(axes))

@@ -47,6 +47,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..config.model import ClosedLoopConfig
 from ..conventions import GRAVITY
 from ..filters.common import field_gates
 from . import closed_loop_compiled
@@ -142,6 +143,9 @@ def closed_loop_scan(rot: Tensor, bias: Tensor, gyro: Tensor, acc_unit: Tensor, 
 _scan = torch.jit.script(closed_loop_scan)
 
 
+_CL = ClosedLoopConfig()  # the defaults (meaning, units): tcn_ahrs/config/model.py
+
+
 class ClosedLoopFilter(nn.Module):
     """Trainable gains of the closed loop (see the module docstring).
 
@@ -165,10 +169,11 @@ class ClosedLoopFilter(nn.Module):
     like the networks' time scale, so evaluation and the exports use the same window.
     """
 
-    def __init__(self, use_acc: bool = True, use_mag: bool = True, acc_gain: float = 0.3,
-                 mag_gain: float = 0.1, bias_gain: float = 0.003, rest_time_constant: float = 2.0,
-                 rest_time: float = 1.5, rest_gyro: float = math.radians(2.0), rest_acc: float = 0.5,
-                 acc_reject: float = 0.0, mag_min: float = 0.0, mag_max: float = 0.0, backend: str = "auto"):
+    def __init__(self, use_acc: bool = True, use_mag: bool = True, acc_gain: float = _CL.acc_gain,
+                 mag_gain: float = _CL.mag_gain, bias_gain: float = _CL.bias_gain,
+                 rest_time_constant: float = _CL.rest_time_constant, rest_time: float = _CL.rest_time,
+                 rest_gyro: float = _CL.rest_gyro, rest_acc: float = _CL.rest_acc, acc_reject: float = _CL.acc_reject,
+                 mag_min: float = _CL.mag_min, mag_max: float = _CL.mag_max, backend: str = "auto"):
         super().__init__()
         self.acc_reject = float(acc_reject)
         self.gravity = float(GRAVITY)

@@ -31,11 +31,13 @@ from torch import Tensor, nn
 
 from ..conventions import GRAVITY
 from ..filters import backbone as bb
+from ..config import keys
+from ..config.model import ResidualConfig
 from .tcn import TCN
 
 FIELD_SCALE = 50.0  # µT: the Earth's field is 22–67 µT
-RESIDUAL_KEYS = {"gyro_scale", "gyro_clip", "acc_trust_scale", "mag_trust_scale", "bias_trust_scale", "trust_max",
-                 "trust_weight", "bias_prior", "backbone"}
+RESIDUAL_KEYS = keys(ResidualConfig)  # model.residual's keys; meaning and defaults: tcn_ahrs/config/model.py
+_R = ResidualConfig()
 
 
 class ResidualCalibration(nn.Module):
@@ -45,8 +47,8 @@ class ResidualCalibration(nn.Module):
     ``mag``, ``gyro_error``, ``acc_error``, ``mag_error``, ``acc_trust_logit``,
     ``mag_trust_logit``), so the training and evaluation code reads either. imu (B, N, C)."""
 
-    def __init__(self, axes: int, tcn: Optional[Mapping] = None, gyro_scale: float = 0.1,
-                 gyro_clip: float = 0.005):
+    def __init__(self, axes: int, tcn: Optional[Mapping] = None, gyro_scale: float = _R.gyro_scale,
+                 gyro_clip: float = _R.gyro_clip):
         super().__init__()
         self.gyro_clip = float(gyro_clip)
         if axes not in (6, 9):
@@ -94,9 +96,10 @@ class BackboneLoop(nn.Module):
     """The backbone with the trust scales: runs a whole recording (numba, float64, no gradient)
     from a given attitude. ``backbone``: :class:`~tcn_ahrs.kernels.backbone.BackboneParams` fields."""
 
-    def __init__(self, use_mag: bool, acc_trust_scale: float = 1.0, mag_trust_scale: float = 1.0,
-                 bias_trust_scale: float = 1.0, trust_max: float = 2.0, trust_weight: float = 1.0,
-                 backbone: Optional[Mapping[str, float]] = None, bias_prior: float = 1.0):
+    def __init__(self, use_mag: bool, acc_trust_scale: float = _R.acc_trust_scale,
+                 mag_trust_scale: float = _R.mag_trust_scale, bias_trust_scale: float = _R.bias_trust_scale,
+                 trust_max: float = _R.trust_max, trust_weight: float = _R.trust_weight,
+                 backbone: Optional[Mapping[str, float]] = None, bias_prior: float = _R.bias_prior):
         super().__init__()
         self.trust_max = float(trust_max)
         self.trust_weight = float(trust_weight)

@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from ..config.model import TCNConfig
+
 # The paper's receptive field: N = 448 samples (Sec. 3.2).
 MIN_RECEPTIVE_FIELD = 448
 
@@ -38,21 +40,24 @@ class CausalConv1d(nn.Module):
         return self.conv(F.pad(x, (self.left_pad, 0)))
 
 
+_T = TCNConfig()  # the defaults: tcn_ahrs/config/model.py
+
+
 class TCN(nn.Module):
     """Causal dilated TCN regressing a per-sample error term.
 
     Args:
         in_channels:  C_in (e.g. 9 for gyro+acc+mag, 3 for one sensor).
         out_channels: C_out (3: one error vector per sample).
-        channels:     widths of the dilated layers (growing with depth), default 16-32-64-128.
+        channels:     widths of the dilated layers (growing with depth), default 16-16-32-32 (the paper: 16-32-64-128).
         kernel_size:  of the dilated layers.
         dilations:    one per dilated layer; ``1 + (k-1) * sum(d) >= 448`` is asserted.
         dropout:      after each hidden layer (paper: 0.1).
     """
 
     def __init__(self, in_channels: int, out_channels: int = 3,
-                 channels: Sequence[int] = (16, 32, 64, 128), kernel_size: int = 7,
-                 dilations: Sequence[int] = (1, 4, 16, 64), dropout: float = 0.1,
+                 channels: Sequence[int] = tuple(_T.channels), kernel_size: int = _T.kernel_size,
+                 dilations: Sequence[int] = tuple(_T.dilations), dropout: float = _T.dropout,
                  min_receptive_field: int = MIN_RECEPTIVE_FIELD):
         super().__init__()
         if len(channels) != len(dilations):

@@ -50,6 +50,11 @@ def run(name: str, cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
     module = cfg.get("module") if hasattr(cfg, "get") else None
     if module is None and name in papers():
         module = f"{__name__}.{name}"
+        from ..config import check_keys
+        from ..config.papers import PAPERS
+
+        if name in PAPERS:  # tcn_ahrs/conf/paper/<name>.yaml's keys: tcn_ahrs/config/papers.py
+            check_keys(cfg, PAPERS[name], f"paper {name}")
     try:
         mod = importlib.import_module(str(module or name))
     except ModuleNotFoundError as e:

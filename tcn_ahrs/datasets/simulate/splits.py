@@ -15,13 +15,9 @@ from . import PROFILES, SPLITS, simulate
 
 def _plain(cfg) -> dict:
     """Mapping or OmegaConf DictConfig -> plain dict."""
-    try:
-        from omegaconf import DictConfig, OmegaConf
-        if isinstance(cfg, DictConfig):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    except ImportError:  # pragma: no cover
-        pass
-    return dict(cfg)
+    from ...config import plain
+
+    return dict(plain(cfg))
 
 
 def split_plan(data_cfg, split: Optional[str] = None) -> List[Dict[str, Any]]:
