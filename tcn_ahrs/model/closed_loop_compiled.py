@@ -12,6 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..kernels.quat import matrix_to_quat_nb  # noqa: F401 (re-exported: compiled by the kernel layer)
 from . import closed_loop_step as scalar
 from .closed_loop_step import OUT
 
@@ -24,7 +25,6 @@ try:
     rest_update_nb = _jit(scalar.rest_update)
     loop_inputs_nb = _jit(scalar.loop_inputs)
     east_reference_nb = _jit(scalar.east_reference_scalar)
-    matrix_to_quat_nb = _jit(scalar.matrix_to_quat_scalar)
     AVAILABLE = True
 except ImportError:  # pragma: no cover - the tensor scan is used instead
     numba = None

@@ -26,6 +26,8 @@ from typing import List, Tuple
 import torch
 from torch import Tensor
 
+from ..kernels.quat import matrix_to_quat as matrix_to_quat_scalar  # noqa: F401 (re-exported: the kernel layer's)
+
 # columns of one input row
 ROW = ("gyro_x", "gyro_y", "gyro_z", "acc_unit_x", "acc_unit_y", "acc_unit_z", "east_x", "east_y",
        "east_z", "acc_gain", "mag_gain", "rest_gain", "dt")
@@ -140,33 +142,6 @@ def east_reference_scalar(r00: float, r01: float, r02: float, r10: float, r11: f
     e1 = r10 * mx + r11 * my + r12 * mz
     n = max(math.sqrt(e0 * e0 + e1 * e1), 1e-9)
     return e0 / n, e1 / n, 0.0
-
-
-def matrix_to_quat_scalar(m00: float, m01: float, m02: float, m10: float, m11: float, m12: float,
-                          m20: float, m21: float, m22: float) -> Tuple[float, float, float, float]:
-    """:func:`tcn_ahrs.so3.matrix_to_quat` (Shepperd, unit, w >= 0) of one matrix, on scalars."""
-    tr = m00 + m11 + m22
-    d0, d1, d2, d3 = 1.0 + tr, 1.0 + m00 - m11 - m22, 1.0 - m00 + m11 - m22, 1.0 - m00 - m11 + m22
-    best, dm = 0, d0
-    if d1 > dm:
-        best, dm = 1, d1
-    if d2 > dm:
-        best, dm = 2, d2
-    if d3 > dm:
-        best, dm = 3, d3
-    s_ = 2.0 * math.sqrt(max(dm, 1e-12))
-    if best == 0:
-        w, x, y, z = 0.25 * s_, (m21 - m12) / s_, (m02 - m20) / s_, (m10 - m01) / s_
-    elif best == 1:
-        w, x, y, z = (m21 - m12) / s_, 0.25 * s_, (m01 + m10) / s_, (m02 + m20) / s_
-    elif best == 2:
-        w, x, y, z = (m02 - m20) / s_, (m01 + m10) / s_, 0.25 * s_, (m12 + m21) / s_
-    else:
-        w, x, y, z = (m10 - m01) / s_, (m02 + m20) / s_, (m12 + m21) / s_, 0.25 * s_
-    n = max(math.sqrt(w * w + x * x + y * y + z * z), 1e-12)  # so3._eps for float64
-    if w < 0.0:
-        n = -n
-    return w / n, x / n, y / n, z / n
 
 
 def split_float32(v: float) -> Tuple[float, float]:
