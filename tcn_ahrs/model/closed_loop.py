@@ -51,7 +51,7 @@ from ..conventions import GRAVITY
 from ..filters.common import field_gates
 from . import closed_loop_compiled
 from .closed_loop_step import scan_scalar
-from .ecf import _unit
+from .open_loop import _unit
 
 
 def window_samples(rest_time: float, rate_hz: float) -> int:
