@@ -1,6 +1,6 @@
 """The closed loop compiled by numba: the loop (:func:`scan_numba`, evaluation), the loop with its
 reverse pass (:class:`ScanFunction`, CPU training). The per-sample functions are
-:mod:`tcn_ahrs.model.closed_loop_step`'s, compiled as they are; ``tests/test_closed_loop_step.py``
+:mod:`tcn_ahrs.kernels.closed_loop`'s, compiled as they are; ``tests/test_closed_loop_step.py``
 holds these equal to the tensor scan and to autograd through it.
 
 numba is optional (the ``[fast]`` extra, in ``[dev]``): without it ``AVAILABLE`` is False and
@@ -12,8 +12,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..kernels import closed_loop as scalar
 from ..kernels.quat import matrix_to_quat_nb  # noqa: F401 (re-exported: compiled by the kernel layer)
-from . import closed_loop_step as scalar
 from .closed_loop_step import OUT
 
 try:

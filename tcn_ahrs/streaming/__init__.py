@@ -11,7 +11,7 @@ runs as one compiled function: a few µs per sample, called from Python.
 Numbers: the same as the exported module (the weights come from the same folding:
 :class:`~tcn_ahrs.export.ClosedLoopStreaming`, BatchNorm folded, input normalisation in the
 first layer, GELU as ``u (1 + erf(u))`` on scaled pre-activations; the filter is
-:mod:`tcn_ahrs.model.closed_loop_step`'s scalar functions), with the networks in float64 instead
+:mod:`tcn_ahrs.kernels.closed_loop`'s scalar functions), with the networks in float64 instead
 of float32; ``tests/test_streaming.py`` holds it to the evaluation model within the export's
 parity bound. Frames and units as everywhere: raw body-frame readings (rad/s, m/s², µT),
 ``nav_from_body`` quaternions (w, x, y, z), ENU.
