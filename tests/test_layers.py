@@ -26,13 +26,13 @@ LAYERS = [
     {"datasets"},
     # the classical filters (torch reference + numba loops) and the backbone's tensor/numba readings
     {"filters"},
-    # the learned model and its losses; checkpoints (which build models); navigation examples
-    # built on the filters' Kalman pieces
-    {"model", "losses", "checkpoint", "nav"},
+    # the learned model, its losses and the scores (AAE, ...); checkpoints (which build models);
+    # navigation examples built on the filters' Kalman pieces
+    {"model", "losses", "metrics", "checkpoint", "nav"},
     # one interface over classical, learned and peer estimators; the papers' reproductions
     {"estimators", "reproduce"},
-    # scoring, evaluation runs, tuning and knob selection, training data, comparison columns
-    {"metrics", "evaluate", "tuning", "knobs", "data", "columns"},
+    # evaluation runs, tuning and knob selection, training data, comparison columns
+    {"evaluate", "tuning", "knobs", "data", "columns"},
     # what a user runs: export, streaming runtimes, benchmarks, the experiments and training
     {"export", "streaming", "bench", "transfer", "crossval", "lodo", "finetune", "compare", "train"},
 ]
