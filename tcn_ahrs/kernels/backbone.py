@@ -43,6 +43,7 @@ from .backbone_layout import (  # noqa: F401 (the layout, read by the step as co
     S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T, S_MCAND_N, S_MCAND_D, S_MCAND_T, F_ACC, F_ROT, F_BIAS, F_RG,
     F_RA, F_MAG, C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B, C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V,
     C_WM, C_WV, C_WR, DEG, EPS, initial_state)
+from . import quat as _quat
 from .ops import float_ops
 
 
@@ -55,6 +56,8 @@ sqrt, sin, cos, tan, exp, atan2, asin, fabs = (ops.sqrt, ops.sin, ops.cos, ops.t
                                                ops.asin, ops.fabs)
 fmax, clip = ops.fmax, ops.clip
 PI = math.pi
+# the quaternion product and rotation of kernels/quat.py, in this table's reading
+qmul, qrot = jit(_quat.qmul), jit(_quat.qrot)
 
 # ------------------------------------------------------------------ coefficients
 @jit
@@ -132,19 +135,7 @@ def lp3(s, c, f, x0, x1, x2, at_b, at_a, tau, ts):
     return y0, y1, y2
 
 # ------------------------------------------------------------------ quaternion helpers
-@jit
-def qmul(a0, a1, a2, a3, b0, b1, b2, b3):
-    return (a0 * b0 - a1 * b1 - a2 * b2 - a3 * b3, a0 * b1 + a1 * b0 + a2 * b3 - a3 * b2,
-            a0 * b2 - a1 * b3 + a2 * b0 + a3 * b1, a0 * b3 + a1 * b2 - a2 * b1 + a3 * b0)
-
-@jit
-def qrot(q0, q1, q2, q3, v0, v1, v2):
-    """q v q* for a unit quaternion q (w, x, y, z)."""
-    x = (1 - 2 * q2 * q2 - 2 * q3 * q3) * v0 + 2 * v1 * (q2 * q1 - q0 * q3) + 2 * v2 * (q0 * q2 + q3 * q1)
-    y = 2 * v0 * (q0 * q3 + q2 * q1) + v1 * (1 - 2 * q1 * q1 - 2 * q3 * q3) + 2 * v2 * (q2 * q3 - q1 * q0)
-    z = 2 * v0 * (q3 * q1 - q0 * q2) + 2 * v1 * (q0 * q1 + q3 * q2) + v2 * (1 - 2 * q1 * q1 - 2 * q2 * q2)
-    return x, y, z
-
+# (qmul, qrot: kernels/quat.py, bound with the ops above)
 @jit
 def quat6(s):
     return qmul(s[S_AQ], s[S_AQ + 1], s[S_AQ + 2], s[S_AQ + 3], s[S_GQ], s[S_GQ + 1], s[S_GQ + 2], s[S_GQ + 3])

@@ -4,7 +4,9 @@ These are *typed scalar kernels* (the second kind in :mod:`tcn_ahrs.kernels`): p
 floats with type annotations, so the same source is compiled by numba (the ``*_nb`` names
 below: the classical filters' loops in :mod:`tcn_ahrs.filters.compiled`, the streaming runtime),
 read by TorchScript (the exported closed-loop modules call :func:`matrix_to_quat` directly) and
-run by the interpreter. Branches may depend on data (they never meet a tensor).
+run by the interpreter. Branches may depend on data where they do; :func:`qmul` and :func:`qrot`
+have none, so the ops-table kernel :mod:`tcn_ahrs.kernels.backbone` takes them too (its torch
+reading runs them on tensors; :mod:`tcn_ahrs.kernels.script_ops` includes their source).
 
 Conventions as :mod:`tcn_ahrs.so3`: quaternions (w, x, y, z), Hamilton product, rotation
 matrices row by row (m00, m01, ..., m22).
@@ -46,6 +48,15 @@ def qmul(pw: float, px: float, py: float, pz: float, qw: float, qx: float, qy: f
     """The Hamilton product p ⊗ q."""
     return (pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
             pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw)
+
+
+def qrot(q0: float, q1: float, q2: float, q3: float, v0: float, v1: float, v2: float
+         ) -> Tuple[float, float, float]:
+    """q v q* for a unit quaternion q (w, x, y, z)."""
+    x = (1 - 2 * q2 * q2 - 2 * q3 * q3) * v0 + 2 * v1 * (q2 * q1 - q0 * q3) + 2 * v2 * (q0 * q2 + q3 * q1)
+    y = 2 * v0 * (q0 * q3 + q2 * q1) + v1 * (1 - 2 * q1 * q1 - 2 * q3 * q3) + 2 * v2 * (q2 * q3 - q1 * q0)
+    z = 2 * v0 * (q3 * q1 - q0 * q2) + 2 * v1 * (q0 * q1 + q3 * q2) + v2 * (1 - 2 * q1 * q1 - 2 * q2 * q2)
+    return x, y, z
 
 
 def qnormalize(w: float, x: float, y: float, z: float) -> Tuple[float, float, float, float]:
