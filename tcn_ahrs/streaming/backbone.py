@@ -9,12 +9,13 @@ import numpy as np
 import torch
 
 from .inputs import _check_samples, _chunk, _one_sample, check_quat0
-from .networks import AVAILABLE, _flat_networks, _networks, _ring_convolutions, _scratch
+from .networks import AVAILABLE, _flat_networks, _ring_convolutions
 
-if AVAILABLE:
+if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportError when built)
     import numba
 
     from ..kernels import backbone as _K
+    from .networks import _networks, _scratch
 
     _bb_coefficients, _bb_gyro, _bb_acc, _bb_mag = _K.coefficients, _K.gyro_update, _K.acc_update, _K.mag_update
     _bb_quat6, _bb_quat9, _bb_qmul = _K.quat6, _K.quat9, _K.qmul

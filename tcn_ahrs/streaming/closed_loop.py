@@ -10,9 +10,9 @@ import torch
 
 from .backbone import BackboneStreaming
 from .inputs import _check_samples, _chunk, _one_sample, check_quat0
-from .networks import AVAILABLE, _flat_networks, _networks, _ring_convolutions, _scratch
+from .networks import AVAILABLE, _flat_networks, _ring_convolutions
 
-if AVAILABLE:
+if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportError when built)
     import numba
 
     from ..kernels.quat import matrix_to_quat_nb as _to_quat
@@ -20,6 +20,7 @@ if AVAILABLE:
     from ..model.closed_loop_compiled import loop_inputs_nb as _loop_inputs
     from ..model.closed_loop_compiled import rest_update_nb as _rest_update
     from ..model.closed_loop_compiled import update_nb as _update
+    from .networks import _networks, _scratch
 
 # state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, rest ring (6 w)
 _STATE_RING = 24
