@@ -1,8 +1,8 @@
 """One sample of the classical filters (ECF, Mahony, Madgwick) on scalars: the steps the compiled
 loops of :mod:`tcn_ahrs.filters.compiled` run, one run after the other over float64 arrays.
 
-Typed scalar kernels (see :mod:`tcn_ahrs.kernels`): Python on floats that numba compiles as it is
-(the ``*_nb`` names below; the Python functions run without numba). They branch on data and call
+Scalar kernels for numba (see :mod:`tcn_ahrs.kernels`): Python on floats that numba compiles as
+it is (the ``*_nb`` names below; the Python functions run without numba). They branch on data and call
 the quaternion kernels of :mod:`tcn_ahrs.kernels.quat`. The torch filters
 (:mod:`tcn_ahrs.filters.ecf`, ``mahony``, ``madgwick``) are the independent reference these are
 held to (``tests/test_compiled.py``, 1e-12) and the differentiable path. Inputs are what the
