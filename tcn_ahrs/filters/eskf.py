@@ -66,8 +66,7 @@ from torch import Tensor
 
 from .. import so3
 from ..conventions import GRAVITY
-from .compiled import use_compiled
-from .compiled_eskf import eskf_loop
+from .compiled import eskf_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, unflatten
 from .kalman import chi2_threshold, kalman_update, symmetrize
 from .robust import robust_inflation, rolling_max

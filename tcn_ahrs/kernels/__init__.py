@@ -16,8 +16,8 @@ Three kinds, one rule — the per-sample math exists once:
 * *array kernels for numba* (:mod:`~tcn_ahrs.kernels.eskf`): one ES-EKF sample in place on small
   preallocated buffers.
 
-The compiled loops that drive them (:mod:`tcn_ahrs.filters.compiled`, ``filters/compiled_eskf``,
-:mod:`tcn_ahrs.model.closed_loop_compiled`, :mod:`tcn_ahrs.streaming`) live with their callers;
+The compiled loops that drive them (:mod:`tcn_ahrs.filters.compiled`, :mod:`tcn_ahrs.model.closed_loop_compiled`,
+:mod:`tcn_ahrs.streaming`) live with their callers;
 the torch filters and the tensor scan of the closed loop are the independent references the
 kernels are tested against.
 """

@@ -1,5 +1,5 @@
 """One sample of the ES-EKF (:func:`tcn_ahrs.filters.eskf.eskf`) for the compiled loop of
-:mod:`tcn_ahrs.filters.compiled_eskf`: the prediction, the gravity-direction update and the
+:mod:`tcn_ahrs.filters.compiled`: the prediction, the gravity-direction update and the
 heading update, each in place on the run's small buffers (attitude rot (3, 3), bias (3,),
 covariance P (6, 6)): no allocation, no BLAS call per 6x6 product.
 
