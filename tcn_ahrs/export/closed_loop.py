@@ -10,8 +10,9 @@ import torch
 from torch import Tensor, nn
 
 from .. import so3
-from ..model.closed_loop_step import (closed_loop_update, east_reference_scalar, loop_inputs, matrix_to_quat_scalar,
-                                       rest_update, split_row)
+from ..kernels.closed_loop import closed_loop_update, east_reference_scalar, loop_inputs, rest_update
+from ..kernels.quat import matrix_to_quat as matrix_to_quat_scalar
+from ..model.closed_loop_step import split_row
 from ..model.closed_loop import window_samples
 from .fused import fuse_model
 from .inputs import ExportError, _Inputs
@@ -89,7 +90,7 @@ class ClosedLoopStreaming(StreamingAHRS):
     :func:`~tcn_ahrs.export.fused.fuse_model`, read through :class:`StreamingAHRS`), the rest
     detector's running sums over its window with the index of the last unsteady sample, and the
     filter's twelve floats (attitude, gyro bias) plus the heading reference. The per-sample filter
-    update is :func:`~tcn_ahrs.model.closed_loop_step.closed_loop_update`, the function the
+    update is :func:`~tcn_ahrs.kernels.closed_loop.closed_loop_update`, the function the
     batch module's loop and the library's compiled loop run.
     """
 

@@ -223,12 +223,12 @@ def _unit_rows(v: Tensor) -> Tensor:
 
 
 def acc_error_rows(acc: Tensor, up: Tensor) -> Tensor:
-    """Eq. 23 (as :func:`tcn_ahrs.model.ecf.acc_error`): ``unit(ĝ) × (C̃^T e_up)``, (N, 3)."""
+    """Eq. 23 (as :func:`tcn_ahrs.model.open_loop.acc_error`): ``unit(ĝ) × (C̃^T e_up)``, (N, 3)."""
     return torch.linalg.cross(_unit_rows(acc), up, dim=1)
 
 
 def mag_error_rows(mag: Tensor, acc_raw: Tensor, east: Tensor) -> Tensor:
-    """Eq. 24 (as :func:`tcn_ahrs.model.ecf.mag_error`): ``unit(b̂ × g') × (C̃^T e_east)``."""
+    """Eq. 24 (as :func:`tcn_ahrs.model.open_loop.mag_error`): ``unit(b̂ × g') × (C̃^T e_east)``."""
     return torch.linalg.cross(_unit_rows(torch.linalg.cross(mag, acc_raw, dim=1)), east, dim=1)
 
 

@@ -113,7 +113,7 @@ class BatchAHRS(_Inputs):
 
     def _previous(self, q0: Tensor, omega: Tensor, dt: Tensor) -> Tensor:
         """Pre-integrated attitude C̃_{k-1} (Eq. 25) for every sample k as (N, 4) quaternions
-        (entry 0 = q0), as :func:`tcn_ahrs.model.ecf.previous_attitude`."""
+        (entry 0 = q0), as :func:`tcn_ahrs.model.open_loop.previous_attitude`."""
         q = quat_integrate(q0, omega, dt, self.hamilton)
         return torch.cat([q0.unsqueeze(0), q[:-1]], 0)
 

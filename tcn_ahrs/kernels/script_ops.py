@@ -4,7 +4,9 @@ TorchScript needs what numba infers: parameter types and no module-level globals
 :func:`script_kernel` rewrites a kernel file's functions into one TorchScript compilation unit:
 parameters typed by their name (:data:`VECTORS`, :data:`INTS`, :data:`BOOLS`; any other name is a
 float), module constants (``S_BIAS``, ``PI``, ...) written in as literals, and the float ops table
-below (the same names as :mod:`tcn_ahrs.kernels.ops`) prepended. Nothing of the math is restated.
+below (the same names as :mod:`tcn_ahrs.kernels.ops`) prepended, and the typed scalar kernels the
+module binds (e.g. ``qmul = jit(quat.qmul)``: already annotated) included as they are. Nothing of
+the math is restated.
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ from typing import Dict
 VECTORS = frozenset({"s", "p", "c"})          # state, parameters, coefficients: List[float]
 INTS = frozenset({"f", "d", "i", "at_b", "at_a"})  # flat indices and counts
 BOOLS = frozenset({"run", "start"})
+# modules of typed scalar kernels (annotated for TorchScript) an ops-table kernel may bind
+TYPED_MODULES = frozenset({"tcn_ahrs.kernels.quat"})
 
 OPS_SOURCE = '''
 def where(c: bool, a: float, b: float) -> float:
@@ -91,6 +95,12 @@ def script_source(module: ModuleType) -> str:
                               and not isinstance(v, bool)}
     pattern = re.compile(r"\b(" + "|".join(sorted(consts, key=len, reverse=True)) + r")\b")
     parts = [OPS_SOURCE]
+    for name, obj in vars(module).items():  # typed kernels bound by the module, under their own names
+        fn = getattr(obj, "py_func", obj)  # a numba dispatcher's Python function
+        if inspect.isfunction(fn) and fn.__module__ in TYPED_MODULES:
+            if fn.__name__ != name:
+                raise ValueError(f"{module.__name__}.{name}: bind typed kernels under their own name ({fn.__name__})")
+            parts.append(inspect.getsource(fn))
     for node in tree.body:
         if not isinstance(node, ast.FunctionDef) or not node.decorator_list:
             continue  # the kernels are the decorated (@jit) functions

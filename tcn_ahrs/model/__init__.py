@@ -1,7 +1,7 @@
 """The learned AHRS: TCN calibration + differentiable open-loop ECF."""
 from .ahrs import LearnedAHRS
 from .calibration import Calibration
-from .ecf import OpenLoopECF
+from .open_loop import OpenLoopECF
 from .tcn import TCN
 
 __all__ = ["LearnedAHRS", "Calibration", "OpenLoopECF", "TCN"]

@@ -32,7 +32,7 @@ Per sample k (``dt_k`` the step before k; sample 0 is the initial state)::
 
 Frames: body vectors, ``nav_from_body`` quaternions (w,x,y,z), ENU, specific force up.
 The loop on tensors (:func:`closed_loop_scan`, TorchScript) is the reference and what autograd
-runs on CUDA; the same update on scalars (:mod:`tcn_ahrs.model.closed_loop_step`) is what
+runs on CUDA; the same update on scalars (:mod:`tcn_ahrs.kernels.closed_loop`) is what
 evaluation (numba), CPU training (numba, with its reverse pass) and the exports (TorchScript)
 run, tested equal to 1e-12 (:meth:`ClosedLoopFilter._scan` picks). It keeps the attitude as a
 rotation matrix: ``C exp(φ^)`` is ``C + a (C φ^) + b (C φ^)φ^`` whose rows are two cross
@@ -52,7 +52,7 @@ from ..conventions import GRAVITY
 from ..filters.common import field_gates
 from . import closed_loop_compiled
 from .closed_loop_step import scan_scalar
-from .ecf import _unit
+from .open_loop import _unit
 
 
 def window_samples(rest_time: float, rate_hz: float) -> int:

@@ -1,6 +1,6 @@
 """The closed loop compiled by numba: the loop (:func:`scan_numba`, evaluation), the loop with its
 reverse pass (:class:`ScanFunction`, CPU training). The per-sample functions are
-:mod:`tcn_ahrs.model.closed_loop_step`'s, compiled as they are; ``tests/test_closed_loop_step.py``
+:mod:`tcn_ahrs.kernels.closed_loop`'s, compiled as they are; ``tests/test_closed_loop_step.py``
 holds these equal to the tensor scan and to autograd through it.
 
 numba is optional (the ``[fast]`` extra, in ``[dev]``): without it ``AVAILABLE`` is False and
@@ -12,7 +12,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import closed_loop_step as scalar
+from ..kernels import closed_loop as scalar
+from ..kernels.quat import matrix_to_quat_nb  # noqa: F401 (re-exported: compiled by the kernel layer)
 from .closed_loop_step import OUT
 
 try:
@@ -24,7 +25,6 @@ try:
     rest_update_nb = _jit(scalar.rest_update)
     loop_inputs_nb = _jit(scalar.loop_inputs)
     east_reference_nb = _jit(scalar.east_reference_scalar)
-    matrix_to_quat_nb = _jit(scalar.matrix_to_quat_scalar)
     AVAILABLE = True
 except ImportError:  # pragma: no cover - the tensor scan is used instead
     numba = None

@@ -1,0 +1,130 @@
+"""How an IMU agrees with its ground truth: the frames, wiring, units and scale of the gyro and
+accelerometer read against the attitude the ground truth says (what ``inspect_data`` shows and
+:class:`~tcn_ahrs.sequence.ImuSequence` checks when a recording is built).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .conventions import GRAVITY
+
+EXCITED_RATE = 10.0 * np.pi / 180.0  # rad/s, spread of the ground-truth rate about an axis
+
+
+def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> dict:
+    """How the IMU agrees with the ground truth of ``seq`` (shown by ``inspect_data``, checked
+    when a recording is built):
+
+    * ``angle_deg``: median angle between the mean gyro over ``lag_s`` and the body rate
+      differentiated from the ground truth over the same interval, on samples where both turn
+      faster than ``min_rate`` rad/s (``moving`` of them); a few degrees when frames agree;
+      ``angle_deg_xyzw`` the same with the quaternions read as x,y,z,w;
+    * ``scale``: median |ground-truth rate| / |gyro rate| (1 in rad/s; 0.017 for deg/s);
+    * ``up``: mean direction (3,) of the specific force in the ground-truth frame (+z, ENU).
+    ``angle_deg``/``scale`` are None when fewer than 30 samples move."""
+    import torch
+
+    from . import so3
+
+    valid = seq.quat_valid
+    t = seq.time
+    lag = max(1, int(round(lag_s * seq.rate)))
+    ok = valid[lag:] & valid[:-lag]
+    q = torch.as_tensor(np.where(valid[:, None], seq.quat, 0.0), dtype=torch.float64)
+    a = torch.as_tensor(seq.accel[valid], dtype=torch.float64)
+    qv = q[torch.as_tensor(valid)]
+    # the specific force averaged in the ground-truth frame is gravity plus the mean linear
+    # acceleration, Δv / T (a few cm/s² over a recording, even in fast translation): its direction
+    # is up; averaging unit directions instead is pulled down by fast motion
+    f_nav = so3.quat_rotate(qv, a)
+    f = f_nav.mean(0)
+    unit = f_nav / f_nav.norm(dim=1, keepdim=True).clamp_min(1e-9)
+    out = {"up": (f / f.norm().clamp_min(1e-9)).numpy(), "angle_deg": None, "angle_deg_xyzw": None, "scale": None,
+           "moving": 0, "accel_fit": None,
+           # 1: the specific force keeps one direction in the ground-truth frame (a frame turned
+           # as a whole); low: it scatters with the attitude (the accelerometer's own axes)
+           "up_concentration": float(unit.mean(0).norm())}
+    # the accelerometer per axis against the gravity the ground truth predicts in the body frame
+    expected = so3.quat_rotate(so3.quat_conj(qv), torch.tensor([0.0, 0.0, GRAVITY], dtype=torch.float64).expand_as(a))
+    out["accel_fit"] = _axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, 1e-3, saturation=False)
+    if ok.sum() < 30:
+        return out
+    okt = torch.as_tensor(ok)
+    span = torch.as_tensor(t[lag:] - t[:-lag])[okt][:, None]
+    # mean gyro over (t_k, t_{k+lag}]: sample k moves the attitude from k-1 to k
+    c = np.cumsum(np.vstack([np.zeros((1, 3)), seq.gyro[1:] * np.diff(t)[:, None]]), 0)
+    w_gyro = torch.as_tensor((c[lag:] - c[:-lag]))[okt] / span
+
+    def gt_rate(qq):
+        return so3.quat_log(so3.quat_mul(so3.quat_conj(qq[:-lag][okt]), qq[lag:][okt])) / span
+
+    w_gt = gt_rate(q)
+    out.update(_axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE, 1e-4))  # needs only the ground truth to turn
+    moving = (w_gyro.norm(dim=1) > min_rate) & (w_gt.norm(dim=1) > min_rate)
+    out["moving"] = int(moving.sum())
+    if out["moving"] < 30:
+        return out
+
+    def angle(w):
+        cos = torch.nn.functional.cosine_similarity(w[moving], w_gyro[moving], dim=1)
+        return float(torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0))).median())
+
+    out["angle_deg"] = angle(w_gt)
+    out["angle_deg_xyzw"] = angle(gt_rate(q[:, [3, 0, 1, 2]]))
+    out["scale"] = float((w_gt[moving].norm(dim=1) / w_gyro[moving].norm(dim=1)).median())
+    return out
+
+
+def _axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: float, floor: float,
+              saturation: bool = True) -> dict:
+    """Per-axis agreement of the gyro with the ground-truth body rate, on the samples where the
+    ground truth turns (w_gt faster than ``min_rate``; the gyro may read anything there):
+
+    * ``gyro_to_gt`` (3, 3): least-squares map ``w_gt ≈ A w_gyro`` (identity when wired right);
+      ``wiring``: the signed permutation nearest to it (which gyro axis reads which body axis);
+      ``det``: its determinant's sign (−1: one axis flipped or two swapped, a left-handed frame);
+      ``misalignment_deg``: the angle of the rotation nearest to ``A`` (a rotated body frame);
+    * ``dead_axes``: gyro axes that read (almost) nothing while the ground truth turns about them;
+    * ``saturated``: {axis: level} where the gyro sticks at its extreme while the ground truth
+      turns faster."""
+    moving = np.linalg.norm(w_gt, axis=1) > min_rate
+    out = {"gyro_to_gt": None, "wiring": None, "det": None, "misalignment_deg": None, "dead_axes": [],
+           "saturated": {}, "gt_moving": int(moving.sum()), "gt_scale": None, "excited_axes": []}
+    if moving.sum() < 30:
+        return out
+    g, r = w_gyro[moving], w_gt[moving]
+    gt_spread = r.std(0)
+    # dead: (almost) constant — below any sensor's noise (``floor``) and 50x below what the
+    # ground truth predicts (a multicopter's accelerometer barely sees tilt, yet still reads noise)
+    out["dead_axes"] = [k for k in range(3) if g[:, k].std() < min(0.02 * max(gt_spread[k], min_rate), floor)
+                        and gt_spread[k] > max(min_rate / 2, 0.1 * excited)]
+    for k in range(3 if saturation else 0):
+        top = np.abs(g[:, k]).max()
+        # saturated: the extreme value itself repeats (a clipped ADC), and the ground truth turns
+        # faster about that axis there (a smooth peak has neither)
+        stuck = np.abs(np.abs(g[:, k]) - top) <= 1e-6 * max(top, 1e-9)
+        if top > 0 and stuck.mean() > 0.02 and np.median(np.abs(r[stuck, k])) > 1.2 * top:
+            out["saturated"][k] = float(top)
+    out["gt_scale"] = float(np.median(np.linalg.norm(r, axis=1) / np.maximum(np.linalg.norm(g, axis=1), 1e-12)))
+    # how well each body axis is excited: the rotation is only identifiable about axes the
+    # recording turns about (a trolley barely rolls or pitches)
+    # (an axis counts when its rate spreads by more than 10 deg/s: OxIOD's trolleys roll and
+    # pitch by 6-8 deg/s of vibration, too little to fit a rotation about those axes)
+    out["excited_axes"] = [k for k in range(3) if gt_spread[k] > excited]
+    a = np.linalg.lstsq(g, r, rcond=None)[0].T  # r ≈ a g
+    # how much of the expected signal the map explains: judged only where it explains most (an
+    # accelerometer in fast translation reads mostly its own motion, not gravity)
+    out["explained"] = float(1.0 - ((r - g @ a.T) ** 2).sum() / max(((r - r.mean(0)) ** 2).sum(), 1e-12))
+    out["gyro_to_gt"] = a
+    perm = np.zeros((3, 3))
+    used = set()
+    for i in np.argsort(-np.abs(a).max(1)):  # strongest rows first
+        j = max((j for j in range(3) if j not in used), key=lambda j: abs(a[i, j]))
+        used.add(j)
+        perm[i, j] = np.sign(a[i, j]) or 1.0
+    out["wiring"] = perm
+    out["det"] = float(np.sign(np.linalg.det(a)))
+    u, _, vt = np.linalg.svd(a)
+    rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    out["misalignment_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
+    return out

@@ -1,0 +1,134 @@
+"""The backbone's parameters and the layouts of its flat vectors (parameters, state,
+coefficients), as named indices: what :mod:`tcn_ahrs.kernels.backbone`'s step reads as constants
+(numba and TorchScript take module-level ints as compile-time constants) and what its callers
+use to read a state (``S_BIAS``, ``N_STATE``, ...).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import astuple, dataclass, fields
+from typing import Dict, List, Tuple
+
+
+# ------------------------------------------------------------------------------ parameters
+
+
+@dataclass(frozen=True)
+class BackboneParams:
+    """The backbone's parameters, VQF's defaults (its ``VQFParams``; names in snake case).
+
+    Units: seconds, degrees and °/s where named so (as VQF's), m/s² for ``rest_th_acc``,
+    fractions for ``mag_norm_th``. Flags are 1.0 / 0.0 (kept as floats: one flat vector)."""
+
+    tau_acc: float = 3.0                 # s, low-pass of the accelerometer in the inertial frame
+    tau_mag: float = 9.0                 # s, heading correction time constant
+    motion_bias: float = 1.0             # bias estimation in motion
+    rest_bias: float = 1.0               # rest detection and bias estimation at rest
+    mag_rejection: float = 1.0           # magnetic disturbance detection and rejection
+    bias_sigma_init: float = 0.5         # °/s
+    bias_forgetting_time: float = 100.0  # s
+    bias_clip: float = 2.0               # °/s
+    bias_sigma_motion: float = 0.1       # °/s
+    bias_vertical_forgetting: float = 1e-4
+    bias_sigma_rest: float = 0.03        # °/s
+    rest_min_time: float = 1.5           # s
+    rest_filter_tau: float = 0.5         # s
+    rest_th_gyro: float = 2.0            # °/s
+    rest_th_acc: float = 0.5             # m/s²
+    mag_current_tau: float = 0.05        # s
+    mag_ref_tau: float = 20.0            # s
+    mag_norm_th: float = 0.1             # relative
+    mag_dip_th: float = 10.0             # °
+    mag_new_time: float = 20.0           # s
+    mag_new_first_time: float = 5.0      # s
+    mag_new_min_gyro: float = 20.0       # °/s
+    mag_min_undisturbed_time: float = 0.5  # s
+    mag_max_rejection_time: float = 60.0   # s
+    mag_rejection_factor: float = 2.0
+
+    def vector(self) -> Tuple[float, ...]:
+        return tuple(float(v) for v in astuple(self))
+
+    @classmethod
+    def from_mapping(cls, cfg) -> "BackboneParams":
+        known = {f.name for f in fields(cls)}
+        bad = set(cfg) - known
+        if bad:
+            raise ValueError(f"backbone parameters: unknown key(s) {sorted(bad)}; expected a subset of {sorted(known)}")
+        return cls(**{k: float(v) for k, v in dict(cfg).items()})
+
+
+def _layout(spec: List[Tuple[str, int]]) -> Dict[str, int]:
+    out, k = {}, 0
+    for name, n in spec:
+        out[name] = k
+        k += n
+    out["_size"] = k
+    return out
+
+
+PARAM = _layout([(f.name, 1) for f in fields(BackboneParams)])
+
+# low-pass filter groups: (name, components); each holds [running, count, state0 (d), state1 (d)]
+_FILTERS = [("acc_lp", 3), ("rot_lp", 9), ("bias_lp", 2), ("rest_gyro_lp", 3), ("rest_acc_lp", 3),
+            ("mag_lp", 2)]
+STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("mag_disturbed", 1),
+                 ("k_mag_init", 1), ("bias", 3), ("bias_p", 9), ("rest_time", 1), ("rest_gyro", 3),
+                 ("mag_ref_norm", 1), ("mag_ref_dip", 1), ("mag_undisturbed_time", 1),
+                 ("mag_reject_time", 1), ("mag_cand_norm", 1), ("mag_cand_dip", 1), ("mag_cand_time", 1)]
+                + [(n, 2 + 2 * d) for n, d in _FILTERS])
+COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
+                 ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
+                 ("bias_vertical_w", 1), ("bias_rest_w", 1)])
+N_STATE = STATE["_size"]
+N_COEFF = COEFF["_size"]
+N_PARAM = PARAM["_size"]
+
+# flat indices as module constants (numba reads globals as compile-time constants)
+_P = {k: v for k, v in PARAM.items()}
+_S = {k: v for k, v in STATE.items()}
+_C = {k: v for k, v in COEFF.items()}
+P_TAU_ACC, P_TAU_MAG = _P["tau_acc"], _P["tau_mag"]
+P_MOTION_BIAS, P_REST_BIAS, P_MAG_REJ = _P["motion_bias"], _P["rest_bias"], _P["mag_rejection"]
+P_SIGMA_INIT, P_FORGET, P_CLIP = _P["bias_sigma_init"], _P["bias_forgetting_time"], _P["bias_clip"]
+P_SIGMA_MOTION, P_VERT_FORGET, P_SIGMA_REST = (_P["bias_sigma_motion"], _P["bias_vertical_forgetting"],
+                                               _P["bias_sigma_rest"])
+P_REST_MIN_T, P_REST_TAU, P_REST_TH_G, P_REST_TH_A = (_P["rest_min_time"], _P["rest_filter_tau"],
+                                                      _P["rest_th_gyro"], _P["rest_th_acc"])
+P_MAG_CUR_TAU, P_MAG_REF_TAU, P_MAG_NORM_TH, P_MAG_DIP_TH = (_P["mag_current_tau"], _P["mag_ref_tau"],
+                                                              _P["mag_norm_th"], _P["mag_dip_th"])
+P_MAG_NEW_T, P_MAG_NEW_FIRST_T, P_MAG_NEW_MIN_G = (_P["mag_new_time"], _P["mag_new_first_time"],
+                                                   _P["mag_new_min_gyro"])
+P_MAG_MIN_UND_T, P_MAG_MAX_REJ_T, P_MAG_REJ_FACTOR = (_P["mag_min_undisturbed_time"],
+                                                      _P["mag_max_rejection_time"], _P["mag_rejection_factor"])
+S_GQ, S_AQ, S_DELTA, S_REST, S_MAGDIST, S_KMINIT = (_S["gyr_quat"], _S["acc_quat"], _S["delta"], _S["rest"],
+                                                    _S["mag_disturbed"], _S["k_mag_init"])
+S_BIAS, S_P, S_REST_T, S_REST_G = _S["bias"], _S["bias_p"], _S["rest_time"], _S["rest_gyro"]
+S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T = (_S["mag_ref_norm"], _S["mag_ref_dip"], _S["mag_undisturbed_time"],
+                                          _S["mag_reject_time"])
+S_MCAND_N, S_MCAND_D, S_MCAND_T = _S["mag_cand_norm"], _S["mag_cand_dip"], _S["mag_cand_time"]
+F_ACC, F_ROT, F_BIAS, F_RG, F_RA, F_MAG = (_S["acc_lp"], _S["rot_lp"], _S["bias_lp"], _S["rest_gyro_lp"],
+                                           _S["rest_acc_lp"], _S["mag_lp"])
+C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B, C_MAG_A = (_C["ts"], _C["acc_b"], _C["acc_a"], _C["rest_b"],
+                                                               _C["rest_a"], _C["mag_b"], _C["mag_a"])
+C_KMAG, C_KMAGREF, C_P0, C_V, C_WM, C_WV, C_WR = (_C["k_mag"], _C["k_mag_ref"], _C["bias_p0"], _C["bias_v"],
+                                                  _C["bias_motion_w"], _C["bias_vertical_w"], _C["bias_rest_w"])
+DEG = math.pi / 180.0
+EPS = 2.220446049250313e-16  # float64 machine epsilon: VQF's threshold for a zero rotation rate
+
+
+def initial_state(params: BackboneParams) -> List[float]:
+    """The state at the start (VQF's ``resetState``): identity quaternions, δ = 0, the bias
+    covariance at its initial value, the field reference unknown (disturbed until accepted),
+    every low-pass filter in its averaging phase."""
+    s = [0.0] * N_STATE
+    s[S_GQ] = 1.0
+    s[S_AQ] = 1.0
+    s[S_MAGDIST] = 1.0
+    s[S_KMINIT] = 1.0
+    p0 = (params.bias_sigma_init * 100.0) ** 2
+    for i in range(3):
+        s[S_P + 4 * i] = p0
+    s[S_MREJ_T] = params.mag_max_rejection_time
+    s[S_MCAND_N] = -1.0
+    return s
