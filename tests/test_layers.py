@@ -18,9 +18,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "tcn_ahrs"
 LAYERS = [
     # scalar kernels written once, compiled by numba and read by torch / TorchScript
     {"kernels"},
-    # units, frames and SO(3) on tensors; argument checks; the scripts' error contract and
-    # output folders (cli imports nothing of the package: the scripts/ are the top)
-    {"conventions", "so3", "validate", "cli"},
+    # units, frames and SO(3) on tensors; argument checks; the shipped YAML files and their typed
+    # schemas (each default once); the commands' error contract and output folders; the TUM writer
+    {"conventions", "so3", "validate", "conf", "config", "app", "tum"},
     # the one recording type, its validation, how an IMU agrees with its ground truth
     {"sequence", "agreement", ""},
     {"datasets"},
@@ -34,7 +34,9 @@ LAYERS = [
     # evaluation runs, tuning and knob selection, training data, comparison columns
     {"evaluate", "tuning", "knobs", "data", "columns"},
     # what a user runs: export, streaming runtimes, benchmarks, the experiments and training
-    {"export", "streaming", "bench", "transfer", "crossval", "lodo", "finetune", "compare", "train"},
+    {"export", "streaming", "bench", "transfer", "crossval", "lodo", "finetune", "compare", "train", "training"},
+    # the command line (tcn-ahrs COMMAND): reaches the commands above by name
+    {"cli", "__main__"},
 ]
 FLOOR = {unit: i for i, layer in enumerate(LAYERS) for unit in layer}
 
@@ -43,8 +45,7 @@ MODEL_FREE = {"nav", "reproduce"}
 MODEL_FREE_MAY_USE = MODEL_FREE | {u for u, i in FLOOR.items() if i <= FLOOR["filters"]}
 
 MAX_LINES = 450
-# being split by another branch; remove the entry once that lands (the test says when)
-OVER_LIMIT = {"tcn_ahrs/train.py"}
+OVER_LIMIT: set = set()  # modules allowed past MAX_LINES (none)
 
 
 def _module_name(path: Path) -> str:

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..metrics import attitude_errors, align_to_first
 from ..sequence import ImuSequence
+from ..tum import write_tum  # noqa: F401  (the one TUM writer; evaluate's artefacts use it from here)
 
 MAX_PLOT_POINTS = 5000
 
@@ -17,20 +18,6 @@ MAX_PLOT_POINTS = 5000
 def safe_name(name: str) -> str:
     """A file-name-safe version of a method or recording name (``"Raw IMU"`` -> ``"Raw_IMU"``)."""
     return re.sub(r"[^A-Za-z0-9._-]+", "_", str(name)).strip("_") or "unnamed"
-
-
-def write_tum(path, time: np.ndarray, quat: np.ndarray, pos: Optional[np.ndarray] = None) -> None:
-    """The one TUM trajectory writer (read by ``evo``): one line ``t x y z qx qy qz qw`` per sample,
-    attitude ``nav_from_body`` (w,x,y,z) reordered to scalar-last, positions ``pos`` (N, 3) m in
-    the navigation frame (0 for an attitude-only estimate); a ``#`` header line."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    q = np.asarray(quat, dtype=np.float64)
-    t = np.asarray(time, dtype=np.float64)
-    xyz = np.zeros((len(t), 3)) if pos is None else np.asarray(pos, dtype=np.float64)
-    data = np.column_stack([t, xyz, q[:, 1], q[:, 2], q[:, 3], q[:, 0]])
-    np.savetxt(path, data, fmt=["%.9f"] + (["%d"] * 3 if pos is None else ["%.9f"] * 3) + ["%.9f"] * 4,
-               header="t x y z qx qy qz qw", comments="# ")
 
 
 def plot_recording(path, seq: ImuSequence, quat_est: np.ndarray, method: str,

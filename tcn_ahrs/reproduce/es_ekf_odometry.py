@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from . import write_report
-from ..evaluate.files import write_tum
+from ..tum import write_tum
 from ..nav.diff_drive import Robot, Sensors, simulate_drive
 from ..nav.odometry import OdometryNoise, odometry_eskf
 from ..nav.odometry_baselines import odometry_filter
