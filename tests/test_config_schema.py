@@ -11,7 +11,7 @@ What is checked, per file kind:
 * ``model/*``: each option composed with train.yaml: keys both ways (``residual`` only where the
   option has it), types; ``model=ahrs`` also value by value against ``ModelConfig()``, and
   ``model=paper`` against it with :data:`~tcn_ahrs.config.model.PAPER_MODEL` on top.
-* ``experiment/*`` (partial overrides by design): composed, then ``train:``/``eval:``/the top level
+* ``experiment/*`` and ``schedule/*`` (partial overrides by design): composed, then ``train:``/``eval:``/the top level
   and the model checked for unknown keys and types (missing keys cannot happen after the merge).
 * ``paper/*``: keys both ways, types and every default against its class in
   :mod:`tcn_ahrs.config.papers`.
@@ -214,8 +214,19 @@ def test_every_group_option_composes_and_matches_its_schema(name, group, option)
         _check_primary(name, cfg, values=False)
 
 
+@pytest.mark.parametrize("option", _options("schedule"))
+def test_every_schedule_composes_and_matches_the_train_schema(option):
+    """schedule/* (an experiment's training schedule, used by experiments through their defaults
+    list): partial overrides like the experiments: unknown keys and types."""
+    for name in ("train", "crossval"):
+        cfg = _compose(name, [f"+schedule={option}"])
+        schema, _ = PRIMARY[name]
+        _no_unknown({k: v for k, v in cfg.items() if k not in NOT_OWN}, schema, f"schedule/{option}.yaml")
+        _check_model(cfg["model"], f"schedule/{option}.yaml model")
+
+
 def test_every_yaml_file_is_checked():
-    groups = {g for _, gs in PRIMARY.values() for g in gs}
+    groups = {g for _, gs in PRIMARY.values() for g in gs} | {"schedule"}
     covered = {f"{n}.yaml" for n in PRIMARY} | {f"{g}/{o}.yaml" for g in groups for o in _options(g)}
     every = {p.relative_to(CONF_DIR).as_posix() for p in CONF_DIR.rglob("*.yaml")}
     assert every <= covered, f"YAML under conf/ no schema check covers: {sorted(every - covered)}"

@@ -7,7 +7,7 @@ import torch
 from tcn_ahrs import so3
 from tcn_ahrs.config.model import PAPER_MODEL  # the paper's open-loop model
 from tcn_ahrs.model.ahrs import LearnedAHRS
-from tcn_ahrs.model.ecf import acc_error, mag_error, previous_attitude
+from tcn_ahrs.model.open_loop import acc_error, mag_error, previous_attitude
 from tcn_ahrs.model.tcn import TCN
 from tcn_ahrs.conf import CONF_DIR
 

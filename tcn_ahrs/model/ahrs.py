@@ -31,7 +31,7 @@ from .. import so3
 from ..conventions import STATE_DTYPE
 from .calibration import Calibration
 from .closed_loop import ClosedLoopFilter
-from .ecf import OpenLoopECF
+from .open_loop import OpenLoopECF
 from ..config import defaults, keys
 from ..config.model import LOOPS, ClosedLoopConfig, ErrorScaleConfig, ModelConfig, ResidualConfig, TCNConfig
 from .residual import RESIDUAL_KEYS, BackboneLoop, ResidualCalibration
