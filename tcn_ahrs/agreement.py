@@ -46,7 +46,7 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
            "up_concentration": float(unit.mean(0).norm())}
     # the accelerometer per axis against the gravity the ground truth predicts in the body frame
     expected = so3.quat_rotate(so3.quat_conj(qv), torch.tensor([0.0, 0.0, GRAVITY], dtype=torch.float64).expand_as(a))
-    out["accel_fit"] = _axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, 1e-3, saturation=False)
+    out["accel_fit"] = axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, 1e-3, saturation=False)
     if ok.sum() < 30:
         return out
     okt = torch.as_tensor(ok)
@@ -59,7 +59,7 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
         return so3.quat_log(so3.quat_mul(so3.quat_conj(qq[:-lag][okt]), qq[lag:][okt])) / span
 
     w_gt = gt_rate(q)
-    out.update(_axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE, 1e-4))  # needs only the ground truth to turn
+    out.update(axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE, 1e-4))  # needs only the ground truth to turn
     moving = (w_gyro.norm(dim=1) > min_rate) & (w_gt.norm(dim=1) > min_rate)
     out["moving"] = int(moving.sum())
     if out["moving"] < 30:
@@ -75,7 +75,7 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
     return out
 
 
-def _axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: float, floor: float,
+def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: float, floor: float,
               saturation: bool = True) -> dict:
     """Per-axis agreement of the gyro with the ground-truth body rate, on the samples where the
     ground truth turns (w_gt faster than ``min_rate``; the gyro may read anything there):

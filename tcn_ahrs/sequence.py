@@ -12,7 +12,7 @@ from typing import Optional
 
 import numpy as np
 
-from .agreement import EXCITED_RATE, _axis_fit, ground_truth_agreement  # noqa: F401 (re-exported)
+from .agreement import EXCITED_RATE, axis_fit, ground_truth_agreement  # noqa: F401 (re-exported)
 from .conventions import GRAVITY, INPUT_RANGES
 
 
@@ -258,7 +258,7 @@ class ImuSequence:
                                 f"map {np.round(a, 2).tolist()}): fix the accelerometer's columns")
 
     def _check_gyro_axes(self, agree: dict) -> None:
-        """Per-axis wiring against the ground-truth body rate (:func:`_axis_fit`): a dead or
+        """Per-axis wiring against the ground-truth body rate (:func:`axis_fit`): a dead or
         saturated axis, a flipped sign or swapped axes, a left-handed frame, a rotated body frame,
         and a gyro far slower or faster than the ground truth where only the latter turns (a
         rad/s gyro declared deg/s on a slow clip)."""

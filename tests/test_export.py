@@ -12,7 +12,7 @@ import torch
 
 from tcn_ahrs import __version__, so3
 from tcn_ahrs.checkpoint import CheckpointError, atomic_save, layout_meta
-from tcn_ahrs.export import (BatchAHRS, ExportError, StreamingAHRS, _hamilton_table, _script,
+from tcn_ahrs.export import (BatchAHRS, ExportError, StreamingAHRS, hamilton_table, _script,
                              build_metadata, export_batch, export_checkpoint, export_streaming,
                              file_sha256, fuse_model, quat_cumprod, quat_integrate, read_metadata,
                              streaming_path)
@@ -211,12 +211,12 @@ def test_quat_cumprod_matches_sequential_matrix_products(n, block):
     independent reference), for lengths around and between block multiples."""
     g = torch.Generator().manual_seed(n)
     q = so3.quat_normalize(torch.randn(n, 4, dtype=torch.float64, generator=g))
-    got = quat_cumprod(q, _hamilton_table(), block)
+    got = quat_cumprod(q, hamilton_table(), block)
     assert got.shape == (n, 4)
     ref = so3.cumprod_matrix_sequential(so3.quat_to_matrix(q))
     assert torch.allclose(so3.quat_to_matrix(got / got.norm(dim=1, keepdim=True)), ref, atol=PARITY_F64[1], rtol=0)
     # the Hamilton table is the Hamilton product
-    assert torch.allclose(_hamilton_table().T @ (q[:, :, None] * q.flip(0)[:, None, :]).reshape(n, 16).T,
+    assert torch.allclose(hamilton_table().T @ (q[:, :, None] * q.flip(0)[:, None, :]).reshape(n, 16).T,
                           so3.quat_mul(q, q.flip(0)).T, atol=1e-15)
 
 
@@ -226,7 +226,7 @@ def test_quat_integrate_matches_so3_integrate():
     omega = 2.0 * torch.randn(n, 3, dtype=torch.float64, generator=g)
     dt = 0.01 + 0.001 * torch.rand(n, dtype=torch.float64, generator=g)
     q0 = q0_for(1)
-    q = quat_integrate(q0, omega, dt, _hamilton_table())
+    q = quat_integrate(q0, omega, dt, hamilton_table())
     ref = so3.integrate(so3.quat_to_matrix(q0), omega, dt)
     assert torch.allclose(so3.quat_to_matrix(q / q.norm(dim=1, keepdim=True)), ref, atol=PARITY_F64[1], rtol=0)
     assert torch.equal(q[0], q0)

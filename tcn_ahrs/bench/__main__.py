@@ -2,11 +2,11 @@
 import sys
 
 from . import main
-from .training import _worker
+from .training import speed_worker
 
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--train-worker":
-        _worker(sys.argv[2])
+        speed_worker(sys.argv[2])
     else:
         from omegaconf import OmegaConf
 

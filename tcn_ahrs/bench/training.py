@@ -368,7 +368,7 @@ def bench_train(p: Dict[str, Any], device: str, seed: int = 0) -> Dict[str, Any]
 # =========================================================================== inference
 
 
-def _worker(payload: str) -> None:
+def speed_worker(payload: str) -> None:
     a = json.loads(payload)
     if a.get("threads"):
         torch.set_num_threads(int(a["threads"]))

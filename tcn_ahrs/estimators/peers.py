@@ -104,14 +104,14 @@ def _frame_to_enu_quat(frame: str) -> np.ndarray:
     return _matrix_to_quat(enu_from_frame(frame))
 
 
-def _to_enu(q_frame_from_body: np.ndarray, frame: str) -> np.ndarray:
+def to_enu(q_frame_from_body: np.ndarray, frame: str) -> np.ndarray:
     """(N,4) ``frame_from_body`` -> (N,4) ``enu_from_body``, normalised, w >= 0."""
     q = _quat_mul(_frame_to_enu_quat(frame), np.asarray(q_frame_from_body, dtype=np.float64))
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0, -q, q)
 
 
-def _from_enu(q_enu_from_body: np.ndarray, frame: str) -> np.ndarray:
+def from_enu(q_enu_from_body: np.ndarray, frame: str) -> np.ndarray:
     """(...,4) ``enu_from_body`` -> ``frame_from_body``."""
     return _quat_mul(_quat_conj(_frame_to_enu_quat(frame)), q_enu_from_body)
 
@@ -126,7 +126,7 @@ def triad_quat(accel: np.ndarray, mag: Optional[np.ndarray] = None) -> np.ndarra
     return _triad(t(accel), None if mag is None else t(mag)).numpy()
 
 
-def _dip_deg(accel: np.ndarray, mag: np.ndarray) -> float:
+def dip_deg(accel: np.ndarray, mag: np.ndarray) -> float:
     """Magnetic dip angle in degrees (positive: field points below the horizon)."""
     a = accel / np.linalg.norm(accel)
     m = mag / np.linalg.norm(mag)
@@ -139,7 +139,7 @@ def _check_axes(axes: int) -> int:
     return int(axes)
 
 
-def _mag_of(seq: ImuSequence, axes: int, peer: str) -> Optional[np.ndarray]:
+def mag_of(seq: ImuSequence, axes: int, peer: str) -> Optional[np.ndarray]:
     if axes == 6:
         return None
     if seq.mag is None:
@@ -148,7 +148,7 @@ def _mag_of(seq: ImuSequence, axes: int, peer: str) -> Optional[np.ndarray]:
     return seq.mag
 
 
-class _Peer:
+class Peer:
     """Shared bits: name, axes, params, heading_free."""
 
     base_name = "peer"
@@ -238,7 +238,7 @@ def run_resampled(est, seq: ImuSequence, init_quat: Optional[np.ndarray], init_i
     return EstimatorOutput(quat=quat, signals=signals)
 
 
-def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
+def constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
     """The sample period (s) of ``seq`` for a peer that takes one fixed period (VQF, RIANN);
     a ``ValueError`` when any step differs from the nominal period by more than ``tol``
     (relative): integrating irregular steps with a fixed period would be silently wrong."""
@@ -262,7 +262,7 @@ def _constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
 # VQF: time constants of the accelerometer (inclination) and magnetometer (heading)
 # corrections, around the authors' (3 s, 9 s). 6 points; tauMag is ignored by 6D.
 @register("vqf", "peer", grid=[dict(tauAcc=a, tauMag=m) for a in (1.0, 3.0, 6.0) for m in (3.0, 9.0)])
-class VQFEstimator(_Peer):
+class VQFEstimator(Peer):
     """VQF (Laidig & Seel, Information Fusion 2023), ``pip install vqf``.
 
     Keyword args are VQF's parameters (authors' defaults: ``tauAcc=3.0`` s, ``tauMag=9.0`` s,
@@ -295,16 +295,16 @@ class VQFEstimator(_Peer):
         # VQF's C++ binding wants C-contiguous float64 (N,3) buffers: slices/float32 break it.
         gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
-        mag = _mag_of(seq, self.axes, self.name)
+        mag = mag_of(seq, self.axes, self.name)
         mag = None if mag is None else np.ascontiguousarray(mag, dtype=np.float64)
-        ts = _constant_period(seq, self.name)
+        ts = constant_period(seq, self.name)
         if self.offline:
             out = self._vqf.offlineVQF(gyr, acc, mag, ts, dict(self.params))
         else:
             out = self._vqf.VQF(ts, **self.params).updateBatch(gyr, acc, mag)
         key = "quat9D" if self.axes == 9 else "quat6D"
         # VQF 9D reference frame: z up, magnetic north +y (heading from atan2(m_x, m_y)) = ENU.
-        quat = _to_enu(out[key], "ENU")
+        quat = to_enu(out[key], "ENU")
         signals = {"gyro_bias": np.asarray(out["bias"], dtype=np.float64),
                    "rest": np.asarray(out["restDetected"], dtype=bool)}
         if self.axes == 9:
@@ -321,7 +321,7 @@ class VQFEstimator(_Peer):
 # Fusion: complementary gain (README default 0.5) x acceleration rejection angle.
 @register("imufusion", "peer",
           grid=[dict(gain=g, acceleration_rejection=r) for g in (0.1, 0.5, 1.0) for r in (10.0, 20.0)])
-class ImufusionEstimator(_Peer):
+class ImufusionEstimator(Peer):
     """x-io Technologies Fusion AHRS, ``pip install imufusion``.
 
     Defaults are the settings the Fusion README recommends (the library's own defaults
@@ -375,7 +375,7 @@ class ImufusionEstimator(_Peer):
 
         (imufusion 1.3 normalises the accelerometer for the attitude update, so the g scale
         only matters for its gravity/linear-acceleration outputs; deg/s matters fully.)"""
-        mag = _mag_of(seq, self.axes, self.name)
+        mag = mag_of(seq, self.axes, self.name)
         gyr = np.ascontiguousarray(rad_to_deg(seq.gyro), dtype=np.float64)
         acc = np.ascontiguousarray(seq.accel / GRAVITY, dtype=np.float64)
         mag = None if mag is None else np.ascontiguousarray(mag, dtype=np.float64)
@@ -410,4 +410,4 @@ class ImufusionEstimator(_Peer):
         signals = {"acc_rejected": acc_rej}
         if self.axes == 9:
             signals["mag_rejected"] = mag_rej
-        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, "ENU"), m_from_nav), signals)
+        return EstimatorOutput(self._to_caller_frame(to_enu(quat, "ENU"), m_from_nav), signals)

@@ -13,13 +13,13 @@ import numpy as np
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
 from . import peers
-from .peers import _dip_deg, _from_enu, _mag_of, _Peer, _to_enu
+from .peers import dip_deg, from_enu, mag_of, Peer, to_enu
 from .registry import register
 
 __all__ = ["AhrsMadgwickEstimator", "AhrsMahonyEstimator", "AhrsEKFEstimator"]
 
 
-class _AhrsFilter(_Peer):
+class _AhrsFilter(Peer):
     """Common loop for the ``ahrs`` package filters (one ``update`` call per sample)."""
 
     frame = "ENU"          # navigation frame the filter estimates in
@@ -40,19 +40,19 @@ class _AhrsFilter(_Peer):
 
     def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None,
             init_index: int = 0) -> EstimatorOutput:
-        mag = _mag_of(seq, self.axes, self.name)
+        mag = mag_of(seq, self.axes, self.name)
         f = self._make(seq, mag)
         n = len(seq)
         q_enu0, m_from_nav = self._initial(seq, init_quat, mag)
         quat = np.empty((n, 4))
-        quat[0] = _from_enu(q_enu0, self.frame)
+        quat[0] = from_enu(q_enu0, self.frame)
         gyr, acc, dt = seq.gyro, self.accel_sign * seq.accel, seq.dt
         sig = [self._signals(f)]
         for k in range(1, n):
             quat[k] = self._step(f, quat[k - 1], gyr[k], acc[k], None if mag is None else mag[k], float(dt[k]))
             sig.append(self._signals(f))
         signals = {key: np.stack([s[key] for s in sig]) for key in sig[0]}
-        return EstimatorOutput(self._to_caller_frame(_to_enu(quat, self.frame), m_from_nav), signals)
+        return EstimatorOutput(self._to_caller_frame(to_enu(quat, self.frame), m_from_nav), signals)
 
 
 # Madgwick beta, rad/s (authors: 0.033 6D / 0.041 9D), log-spaced.
@@ -134,7 +134,7 @@ class AhrsEKFEstimator(_AhrsFilter):
     def _make(self, seq, mag):
         mref = self.params["magnetic_ref"]
         if mref is None:
-            mref = _dip_deg(seq.accel[0], mag[0]) if mag is not None else 60.0  # unused in 6D
+            mref = dip_deg(seq.accel[0], mag[0]) if mag is not None else 60.0  # unused in 6D
         f = self._ahrs.EKF(frequency=float(seq.rate), frame=self.frame, magnetic_ref=mref,
                            noises=list(self.params["noises"]))
         # The EKF's measurement model h() picks 3 or 6 rows from whether ``self.mag`` is set,

@@ -14,7 +14,7 @@ import numpy as np
 from ..sequence import ImuSequence
 from . import peers
 from .base import EstimatorOutput
-from .peers import _constant_period, _Peer, _to_enu, is_constant_period, run_resampled
+from .peers import constant_period, Peer, to_enu, is_constant_period, run_resampled
 from .registry import register
 
 __all__ = ["RIANNEstimator"]
@@ -22,7 +22,7 @@ __all__ = ["RIANNEstimator"]
 
 # RIANN has no tunable parameters.
 @register("riann", "peer", axes=(6,))
-class RIANNEstimator(_Peer):
+class RIANNEstimator(Peer):
     """RIANN (Weber, Gühmann & Seel, AI 2021), 6-axis, ``pip install riann``.
 
     No parameters besides ``onnx_path`` (default: the model shipped inside the installed
@@ -53,11 +53,11 @@ class RIANNEstimator(_Peer):
             return run_resampled(self, seq, init_quat, init_index)
         acc = np.ascontiguousarray(seq.accel, dtype=np.float64)
         gyr = np.ascontiguousarray(seq.gyro, dtype=np.float64)
-        fs = 1.0 / _constant_period(seq, self.name)
+        fs = 1.0 / constant_period(seq, self.name)
         if self.params["streaming"]:
             self._model.reset_state()
             self._model.set_sampling_rate(fs)
             quat = np.stack([self._model.predict_step(acc[k], gyr[k]) for k in range(len(seq))])
         else:
             quat = self._model.predict(acc, gyr, fs)
-        return EstimatorOutput(_to_enu(np.asarray(quat, dtype=np.float64), "ENU"), {})
+        return EstimatorOutput(to_enu(np.asarray(quat, dtype=np.float64), "ENU"), {})

@@ -63,14 +63,14 @@ from torch import nn
 from .. import __version__
 from ..conventions import NETWORK_DTYPE
 from .closed_loop import ClosedLoopBatch, ClosedLoopStreaming
-from .fused import _hamilton_table, fuse_model, quat_cumprod, quat_integrate
+from .fused import hamilton_table, fuse_model, quat_cumprod, quat_integrate
 from .inputs import ExportError
 from .open_loop import NET_DTYPES, BatchAHRS, StreamingAHRS
 
 __all__ = ["export_main", "export_batch", "export_streaming", "export_checkpoint", "read_metadata", "build_metadata",
            "file_sha256", "streaming_path", "ExportError", "BatchAHRS", "StreamingAHRS", "ClosedLoopBatch",
            "ClosedLoopStreaming", "fuse_model", "quat_cumprod", "quat_integrate", "MODES", "NET_DTYPES",
-           "CHANNELS", "_hamilton_table"]
+           "CHANNELS", "hamilton_table"]
 
 MODES = ("batch", "streaming", "both")
 CHANNELS = {6: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"],

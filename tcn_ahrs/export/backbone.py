@@ -24,7 +24,7 @@ from .inputs import ExportError
 from .open_loop import StreamingAHRS
 
 _KS = script_kernel(K)
-_coefficients, _gyro_update, _acc_update, _mag_update, _quat6, _quat9, _qmul, _qrot = (
+_coefficients, _gyro_update, _acc_update, _mag_update, _quat6, _quat9, qmul, _qrot = (
     _KS.coefficients, _KS.gyro_update, _KS.acc_update, _KS.mag_update, _KS.quat6, _KS.quat9, _KS.qmul, _KS.qrot)
 
 
@@ -110,7 +110,7 @@ class ResidualStreaming(StreamingAHRS):
             v0, v1, v2 = _qrot(q[0], q[1], q[2], q[3], raw[6], raw[7], raw[8])
             h = 0.5 * (0.5 * math.pi - math.atan2(v1, v0))
             ch, sh = math.cos(h), math.sin(h)
-            w, x, y, z = _qmul(ch, 0.0, 0.0, sh, q[0], q[1], q[2], q[3])
+            w, x, y, z = qmul(ch, 0.0, 0.0, sh, q[0], q[1], q[2], q[3])
             q = [w, x, y, z]
             self.m_conj = [ch, 0.0, 0.0, -sh]
         s: List[float] = list(self.initial_state)
@@ -148,7 +148,7 @@ class ResidualStreaming(StreamingAHRS):
         else:
             w, x, y, z = _quat6(s)
         m = self.m_conj
-        qw, qx, qy, qz = _qmul(m[0], m[1], m[2], m[3], w, x, y, z)
+        qw, qx, qy, qz = qmul(m[0], m[1], m[2], m[3], w, x, y, z)
         self.t += 1
         if qw < 0.0:  # w >= 0 representative, as the other exported modules
             qw, qx, qy, qz = -qw, -qx, -qy, -qz

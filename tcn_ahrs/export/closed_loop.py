@@ -15,7 +15,7 @@ from ..kernels.quat import matrix_to_quat as matrix_to_quat_scalar
 from ..model.closed_loop_step import split_row
 from ..model.closed_loop import window_samples
 from .fused import fuse_model
-from .inputs import ExportError, _Inputs
+from .inputs import ExportError, InputChecks
 from .open_loop import StreamingAHRS
 
 
@@ -30,7 +30,7 @@ def rest_window(closed: nn.Module, metadata: Mapping[str, Any]) -> int:
     return window_samples(closed.rest_time, float(rate))
 
 
-class ClosedLoopBatch(_Inputs):
+class ClosedLoopBatch(InputChecks):
     """The learned closed loop, whole sequence: the model's own :class:`Calibration` and
     :class:`ClosedLoopFilter` modules scripted as they are (no restated math), run exactly as
     :meth:`LearnedAHRS.run_sequence` runs them in evaluation: networks in float32, rest

@@ -145,14 +145,14 @@ def fuse_model(model: nn.Module) -> Dict[str, Any]:
 
 
 # ============================================================ float64 quaternion scans
-def _hamilton_table() -> Tensor:
+def hamilton_table() -> Tensor:
     """(16, 4) float64: ``p ⊗ q = (p ⊗_outer q).reshape(16) @ table`` (row 4 i + j holds the
     sign with which ``p_i q_j`` enters each component of the Hamilton product)."""
     e = torch.eye(4, dtype=torch.float64)
     return so3.quat_mul(e[:, None, :], e[None, :, :]).reshape(16, 4)
 
 
-def _qmul(a: Tensor, b: Tensor, table: Tensor) -> Tensor:
+def qmul(a: Tensor, b: Tensor, table: Tensor) -> Tensor:
     """Row-wise Hamilton product of (M, 4) quaternions: one outer product + one matmul."""
     return torch.mm((a.unsqueeze(2) * b.unsqueeze(1)).reshape(-1, 16), table)
 
@@ -163,7 +163,7 @@ def _cumprod_hillis_steele(q: Tensor, table: Tensor) -> Tensor:
     p = q
     d = 1
     while d < n:
-        p = torch.cat([p[:d], _qmul(p[:-d], p[d:], table)], 0)
+        p = torch.cat([p[:d], qmul(p[:-d], p[d:], table)], 0)
         d *= 2
     return p
 
@@ -178,7 +178,7 @@ def quat_cumprod(q: Tensor, table: Tensor, block: int = 32) -> Tensor:
     is multiplied on the left by the product of all earlier blocks. A plain O(N log N)
     Hillis-Steele scan over 6000 samples costs ~13 levels x N products, 3x3 matrices
     (:func:`so3.cumprod_matrix`) ~4x more again; this is ~3 N products.
-    ``table`` = :func:`_hamilton_table`."""
+    ``table`` = :func:`hamilton_table`."""
     n = q.size(0)
     if n <= 2 * block:
         return _cumprod_hillis_steele(q, table)
@@ -192,11 +192,11 @@ def quat_cumprod(q: Tensor, table: Tensor, block: int = 32) -> Tensor:
     acc = x[0]
     steps = [acc]
     for j in range(1, block):
-        acc = _qmul(acc, x[j], table)
+        acc = qmul(acc, x[j], table)
         steps.append(acc)
     within = torch.stack(steps, 0)  # (block, B, 4) within-block prefixes
     before = _cumprod_hillis_steele(within[-1], table)[:-1]  # (B-1, 4): blocks 0..b-1
-    later = _qmul(before.unsqueeze(0).expand(block, nb - 1, 4).reshape(-1, 4),
+    later = qmul(before.unsqueeze(0).expand(block, nb - 1, 4).reshape(-1, 4),
                   within[:, 1:].reshape(-1, 4), table).view(block, nb - 1, 4)
     out = torch.cat([within[:, :1], later], 1).transpose(0, 1).reshape(nb * block, 4)
     return out[:n]
@@ -209,7 +209,7 @@ def quat_integrate(q0: Tensor, omega: Tensor, dt: Tensor, table: Tensor) -> Tens
     return quat_cumprod(torch.cat([q0.unsqueeze(0), inc], 0), table)
 
 
-def _rows_up_east(q: Tensor) -> Tuple[Tensor, Tensor]:
+def rows_up_east(q: Tensor) -> Tuple[Tensor, Tensor]:
     """Rows of C(q) (nav_from_body, (N, 4) unit quaternions) the ECF uses: ``C^T e_up`` (third
     row) and ``C^T e_east`` (first row), each (N, 3)."""
     w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]

@@ -15,7 +15,7 @@ class ExportError(ValueError):
     """The model cannot be exported (a structure this exporter does not know)."""
 
 
-class _Inputs(nn.Module):
+class InputChecks(nn.Module):
     """Input checks shared by every exported module (``self.axes`` set by the subclass)."""
 
     def _check_imu(self, imu: Tensor):

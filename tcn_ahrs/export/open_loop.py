@@ -10,15 +10,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .fused import _hamilton_table, _rows_up_east, acc_error_rows, mag_error_rows, quat_integrate, ring_convolutions
+from .fused import hamilton_table, rows_up_east, acc_error_rows, mag_error_rows, quat_integrate, ring_convolutions
 from ..model.closed_loop_step import float64_tensor
-from .inputs import ExportError, _Inputs
+from .inputs import ExportError, InputChecks
 
 NET_DTYPES = (torch.float32, torch.float64, torch.bfloat16)
 _SQRT_HALF = math.sqrt(0.5)
 
 
-class BatchAHRS(_Inputs):
+class BatchAHRS(InputChecks):
     """Whole-sequence learned AHRS (TorchScript-able). See the module docstring for the contract.
 
     ``forward(imu (N, C), dt float | (N,), q0 (4,)) -> (quat (N, 4), omega (N, 3))``, float64.
@@ -51,7 +51,7 @@ class BatchAHRS(_Inputs):
         self.register_buffer("out_bias", fused["out_bias"].to(f64))
         self.register_buffer("acc_gain", fused["acc_gain"].to(f64))
         self.register_buffer("mag_gain", fused["mag_gain"].to(f64))
-        self.register_buffer("hamilton", _hamilton_table())
+        self.register_buffer("hamilton", hamilton_table())
         self.kernel_size = int(fused.get("kernel_size", 1))
         self.first_dilation = int(fused.get("first_dilation", 1))
         empty = torch.zeros(0, dtype=net_dtype)
@@ -103,7 +103,7 @@ class BatchAHRS(_Inputs):
     def _correction(self, q_prev: Tensor, acc: Tensor, mag: Tensor, acc_raw: Tensor) -> Tensor:
         """γ ⊙ e_acc + η ⊙ e_mag (Eqs. 22-24) against C̃ = C(q_prev), (N, 3) float64."""
         q = q_prev / torch.linalg.norm(q_prev, dim=1, keepdim=True)
-        up, east = _rows_up_east(q)
+        up, east = rows_up_east(q)
         corr = torch.zeros_like(acc)
         if self.use_acc:
             corr = corr + self.acc_gain * acc_error_rows(acc, up)

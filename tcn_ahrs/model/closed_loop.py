@@ -52,7 +52,7 @@ from ..conventions import GRAVITY
 from ..filters.common import field_gates
 from . import closed_loop_compiled
 from .closed_loop_step import scan_scalar
-from .open_loop import _unit
+from .open_loop import unit_vector
 
 
 def window_samples(rest_time: float, rate_hz: float) -> int:
@@ -98,10 +98,10 @@ def rest_detector(gyro: Tensor, acc: Tensor, window: int, rest_gyro: float = mat
 def east_reference(rot0: Tensor, acc0: Tensor, mag0: Tensor) -> Tensor:
     """Horizontal unit vector (B, 3), navigation frame: the measured magnetic east
     ``unit(m × a)`` at the initial attitude ``rot0`` (B, 3, 3) ``nav_from_body``."""
-    east_b = _unit(torch.cross(mag0, acc0, dim=-1))
+    east_b = unit_vector(torch.cross(mag0, acc0, dim=-1))
     e = (rot0 @ east_b.unsqueeze(-1)).squeeze(-1)
     e = torch.stack([e[:, 0], e[:, 1], torch.zeros_like(e[:, 2])], -1)
-    return _unit(e)
+    return unit_vector(e)
 
 
 def closed_loop_scan(rot: Tensor, bias: Tensor, gyro: Tensor, acc_unit: Tensor, east_b: Tensor,
@@ -292,14 +292,14 @@ class ClosedLoopFilter(nn.Module):
         dt (B, N) s; east_ref (B, 3) (default: from rot0 and sample 0).
         Returns ``rot`` (B, N, 3, 3) (entry 0 = rot0), ``gyro_bias`` (B, N, 3), ``correction``
         (B, N, 3) rad/s, ``east_ref`` (B, 3)."""
-        acc_unit = _unit(acc)
+        acc_unit = unit_vector(acc)
         dt_ = dt.unsqueeze(-1)
         zero = torch.zeros_like(dt_)
         east_b = torch.zeros_like(gyro)
         mag_gain = zero
         ref = torch.zeros_like(gyro[:, 0])
         if self.use_mag and mag is not None:
-            east_b = _unit(torch.cross(mag, acc_raw, dim=-1))
+            east_b = unit_vector(torch.cross(mag, acc_raw, dim=-1))
             if east_ref is None:
                 ref = east_reference(rot0, acc_raw[:, 0], mag[:, 0])
             else:

@@ -37,7 +37,7 @@ from .. import so3
 PREINTEGRATIONS = ("raw", "denoised", "two_pass")
 
 
-def _unit(v: Tensor) -> Tensor:
+def unit_vector(v: Tensor) -> Tensor:
     # epsilon written inline: TorchScript (the exported modules reuse these functions) cannot
     # capture module-level floats
     return v / torch.linalg.norm(v, dim=-1, keepdim=True).clamp_min(1e-9)
@@ -46,14 +46,14 @@ def _unit(v: Tensor) -> Tensor:
 def acc_error(acc: Tensor, nav_from_body: Tensor) -> Tensor:
     """Eq. 23: ``ĝ/|ĝ| × (C^T e_up)``. acc (..., 3) m/s^2, nav_from_body (..., 3, 3) -> (..., 3)."""
     up_pred = nav_from_body[..., 2, :]  # C^T [0,0,1] = third row of C
-    return torch.cross(_unit(acc), up_pred, dim=-1)
+    return torch.cross(unit_vector(acc), up_pred, dim=-1)
 
 
 def mag_error(mag: Tensor, acc_raw: Tensor, nav_from_body: Tensor) -> Tensor:
     """Eq. 24: ``east_b × (C^T e_east)`` with ``east_b = unit(b̂ × g')``.
 
     mag (..., 3) uT, acc_raw (..., 3) the raw accelerometer, nav_from_body (..., 3, 3)."""
-    east_meas = _unit(torch.cross(mag, acc_raw, dim=-1))
+    east_meas = unit_vector(torch.cross(mag, acc_raw, dim=-1))
     east_pred = nav_from_body[..., 0, :]  # C^T [1,0,0] = first row of C
     return torch.cross(east_meas, east_pred, dim=-1)
 

@@ -8,14 +8,14 @@ from typing import Tuple, Union
 import numpy as np
 import torch
 
-from .inputs import _check_samples, _chunk, _one_sample, check_quat0
-from .networks import AVAILABLE, _flat_networks, _ring_convolutions
+from .inputs import check_samples, checked_chunk, one_sample, check_quat0
+from .networks import AVAILABLE, flat_networks, scripted_ring_convolutions
 
 if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportError when built)
     import numba
 
     from ..kernels import backbone as _K
-    from .networks import _networks, _scratch
+    from .networks import networks_step, scratch
 
     _bb_coefficients, _bb_gyro, _bb_acc, _bb_mag = _K.coefficients, _K.gyro_update, _K.acc_update, _K.mag_update
     _bb_quat6, _bb_quat9, _bb_qmul = _K.quat6, _K.quat9, _K.qmul
@@ -23,20 +23,20 @@ if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportErro
 
     @numba.njit(cache=True)
     def _backbone_steps(xs, dts, feats, params, wts, ints, rings, p, s, coeff, knobs, m_conj, out):  # pragma: no cover
-        """The residual model per sample: networks (:func:`_networks`, head rows = −[gyro net
+        """The residual model per sample: networks (:func:`networks_step`, head rows = −[gyro net
         pre-tanh (3), trust logits]) -> gyro residual and trusts (as
         :class:`~tcn_ahrs.model.residual.BackboneLoop`) -> one backbone step (the kernel of
         :mod:`tcn_ahrs.kernels.backbone`). knobs: [gyro_scale, gyro_clip, trust_max, trust_weight,
         acc, mag, bias trust scale, last dt, use_mag]; m_conj (4,): the magnetic frame's
         conjugate (9D; identity for 6D), applied to the output. out (k, 7): quat, omega."""
-        h_in, h_out, tap, pre, v = _scratch(ints)
+        h_in, h_out, tap, pre, v = scratch(ints)
         no_feats = np.empty(0)
         g_scale, g_clip, t_max, t_w = knobs[0], knobs[1], knobs[2], knobs[3]
         use_mag = knobs[8] > 0.5
         for k in range(xs.shape[0]):
             x = xs[k]
             t = int(knobs[9])
-            _networks(x, t, feats[k] if feats.shape[0] > 0 else no_feats, params, wts, ints, rings,
+            networks_step(x, t, feats[k] if feats.shape[0] > 0 else no_feats, params, wts, ints, rings,
                       h_in, h_out, tap, pre, v)
             knobs[9] = t + 1
             trusts = np.ones(3)
@@ -103,7 +103,7 @@ class BackboneStreaming:
         # as sqrt(2) GELU (the sqrt(1/2) folded into W)
         w = torch.cat([ts.out_weight_f64[0:3], fused["trust_weight"][:n_trust] * math.sqrt(0.5)], 0)
         b = torch.cat([fused["out_bias"][0:3], fused["trust_bias"][:n_trust]])
-        nets = _flat_networks(ts, w, b, torch.zeros(w.shape[0], c, dtype=torch.float64))
+        nets = flat_networks(ts, w, b, torch.zeros(w.shape[0], c, dtype=torch.float64))
         self._wts, self._nparams, self._ints, self._rings, self._views, self._dilations = nets
         self._ts = ts
         self._no_feats = np.zeros((0, int(w.shape[1])))
@@ -145,11 +145,11 @@ class BackboneStreaming:
         self._state[self._bb.K.S_BIAS:self._bb.K.S_BIAS + 3] = self._bias0
 
     def _check(self, xs: np.ndarray, dts: np.ndarray) -> None:
-        _check_samples(xs, dts)  # every dt is used (the backbone integrates sample 0)
+        check_samples(xs, dts)  # every dt is used (the backbone integrates sample 0)
 
     def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
         """One sample (C,) -> (quat (4,), omega (3,))."""
-        x = _one_sample(self, sample, dt)
+        x = one_sample(self, sample, dt)
         if self._state is None:
             self._start(x[0])
         _backbone_steps(x, self._dt1, self._no_feats, self._nparams, self._wts, self._ints, self._rings, self._p,
@@ -158,7 +158,7 @@ class BackboneStreaming:
 
     def step_chunk(self, samples, dt: Union[float, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
         """k samples (k, C) -> (quat (k, 4), omega (k, 3)): what k calls of :meth:`step` return."""
-        xs, dts = _chunk(self, samples, dt)
+        xs, dts = checked_chunk(self, samples, dt)
         if xs.shape[0] == 0:
             return np.zeros((0, 4)), np.zeros((0, 3))
         if self._state is None:
@@ -166,7 +166,7 @@ class BackboneStreaming:
         feats = self._no_feats
         if xs.shape[0] >= self.chunk_networks:
             with torch.no_grad():
-                feats = _ring_convolutions()(torch.from_numpy(xs), int(self._knobs[9]), self._views,
+                feats = scripted_ring_convolutions()(torch.from_numpy(xs), int(self._knobs[9]), self._views,
                                              self._ts.chunk_weights, self._ts.chunk_biases, self._dilations,
                                              int(self._ts.groups)).numpy()
         out = np.empty((xs.shape[0], 7))

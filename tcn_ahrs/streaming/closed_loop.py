@@ -9,8 +9,8 @@ import numpy as np
 import torch
 
 from .backbone import BackboneStreaming
-from .inputs import _check_samples, _chunk, _one_sample, check_quat0
-from .networks import AVAILABLE, _flat_networks, _ring_convolutions
+from .inputs import check_samples, checked_chunk, one_sample, check_quat0
+from .networks import AVAILABLE, flat_networks, scripted_ring_convolutions
 
 if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportError when built)
     import numba
@@ -20,7 +20,7 @@ if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportErro
     from ..model.closed_loop_compiled import loop_inputs_nb as _loop_inputs
     from ..model.closed_loop_compiled import rest_update_nb as _rest_update
     from ..model.closed_loop_compiled import update_nb as _update
-    from .networks import _networks, _scratch
+    from .networks import networks_step, scratch
 
 # state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, rest ring (6 w)
 _STATE_RING = 24
@@ -29,18 +29,18 @@ _STATE_RING = 24
 if AVAILABLE:
     @numba.njit(cache=True)
     def _steps(xs, dts, feats, params, wts, cfg, ints, state, rings, out):  # pragma: no cover - compiled
-        """Samples xs (k, C) with steps dts (k,) through the networks (:func:`_networks`) and the
+        """Samples xs (k, C) with steps dts (k,) through the networks (:func:`networks_step`) and the
         filter; writes [quat (4), omega (3)] per sample into out (k, 7) and advances state and
         rings. feats (k, H): the networks' last features already computed for these samples
         (then the networks are skipped), or an empty (0, H) array."""
         c, nl, w = ints[0], ints[2], ints[3]
         use_acc, use_mag, n_head = ints[4] != 0, ints[5] != 0, ints[7]
-        h_in, h_out, tap, pre, v = _scratch(ints)
+        h_in, h_out, tap, pre, v = scratch(ints)
         no_feats = np.empty(0)
         for k in range(xs.shape[0]):
             t = int(state[0])
             x = xs[k]
-            _networks(x, t, feats[k] if feats.shape[0] > 0 else no_feats, params, wts, ints, rings,
+            networks_step(x, t, feats[k] if feats.shape[0] > 0 else no_feats, params, wts, ints, rings,
                       h_in, h_out, tap, pre, v)
             # ---- rest detector
             rb = _STATE_RING + 6 * (t % w)
@@ -100,7 +100,7 @@ class CompiledStreaming:
         meta: Mapping[str, Any] = {"rate_hz": rate_hz}
         ts = ClosedLoopStreaming(model.eval(), meta)  # the folded weights (not scripted)
         self.axes = int(ts.axes)
-        nets = _flat_networks(ts, ts.head_weight, ts.head_bias, ts.head_matrix, ts.window, ts.use_acc, ts.use_mag)
+        nets = flat_networks(ts, ts.head_weight, ts.head_bias, ts.head_matrix, ts.window, ts.use_acc, ts.use_mag)
         self._wts, self._params, self._ints, self._rings, self._views, self._dilations = nets
         self._ts = ts
         self._n_feat = int(ts.head_weight.shape[1])
@@ -134,22 +134,22 @@ class CompiledStreaming:
 
     def _check(self, xs: np.ndarray, dts: np.ndarray) -> None:
         # the dt of the first sample after reset is not used by the closed loop
-        _check_samples(xs, dts[1:] if self._state[0] == 0.0 else dts)
+        check_samples(xs, dts[1:] if self._state[0] == 0.0 else dts)
 
     def step(self, sample, dt: float) -> Tuple[np.ndarray, np.ndarray]:
         """One sample (C,) -> (quat (4,), omega (3,))."""
-        x = _one_sample(self, sample, dt)
+        x = one_sample(self, sample, dt)
         _steps(x, self._dt1, self._no_feats, self._params, self._wts, self._cfg, self._ints, self._state, self._rings, self._out1)
         return self._out1[0, 0:4].copy(), self._out1[0, 4:7].copy()
 
     def step_chunk(self, samples, dt: Union[float, np.ndarray]) -> Tuple[np.ndarray, np.ndarray]:
         """k samples (k, C) -> (quat (k, 4), omega (k, 3)): what k calls of :meth:`step` return."""
-        xs, dts = _chunk(self, samples, dt)
+        xs, dts = checked_chunk(self, samples, dt)
         out = np.empty((xs.shape[0], 7))
         feats = self._no_feats
         if xs.shape[0] >= self.chunk_networks and self._ts.groups > 0:
             with torch.no_grad():
-                feats = _ring_convolutions()(torch.from_numpy(xs), int(self._state[0]), self._views,
+                feats = scripted_ring_convolutions()(torch.from_numpy(xs), int(self._state[0]), self._views,
                                              self._ts.chunk_weights, self._ts.chunk_biases, self._dilations,
                                              int(self._ts.groups)).numpy()
         _steps(xs, dts, feats, self._params, self._wts, self._cfg, self._ints, self._state, self._rings, out)

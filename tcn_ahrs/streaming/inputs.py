@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 
-def _one_sample(stream, sample, dt) -> np.ndarray:
+def one_sample(stream, sample, dt) -> np.ndarray:
     """One sample as a checked (1, C) array; its dt stored in ``stream._dt1``."""
     x = np.asarray(sample, dtype=np.float64)
     if x.ndim != 1:
@@ -23,7 +23,7 @@ def _one_sample(stream, sample, dt) -> np.ndarray:
     return x
 
 
-def _chunk(stream, samples, dt) -> Tuple[np.ndarray, np.ndarray]:
+def checked_chunk(stream, samples, dt) -> Tuple[np.ndarray, np.ndarray]:
     """k samples as a checked (k, C) array and their (k,) steps."""
     xs = np.ascontiguousarray(np.asarray(samples, dtype=np.float64))
     if xs.ndim != 2 or xs.shape[1] != stream.axes:
@@ -33,7 +33,7 @@ def _chunk(stream, samples, dt) -> Tuple[np.ndarray, np.ndarray]:
     return xs, dts
 
 
-def _check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
+def check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
     """ValueError unless every reading is finite and within the physical ranges
     (:data:`tcn_ahrs.conventions.INPUT_RANGES`) and every (used) step is finite, > 0 and
     <= :data:`~tcn_ahrs.conventions.MAX_DT` s."""

@@ -1,8 +1,8 @@
 """The networks of the streaming runtimes, per sample on ring buffers, compiled by numba: the
-folded TCNs (:func:`_flat_networks` lays out an exported streaming module's weights as flat
+folded TCNs (:func:`flat_networks` lays out an exported streaming module's weights as flat
 arrays) and the head, shared by the closed loop (:mod:`tcn_ahrs.streaming.closed_loop`) and the
 residual model (:mod:`tcn_ahrs.streaming.backbone`); a chunk of samples runs as convolutions
-instead (:func:`_ring_convolutions`), advancing the same ring buffers.
+instead (:func:`scripted_ring_convolutions`), advancing the same ring buffers.
 """
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ if AVAILABLE:
     _erf = numba.njit(cache=True, inline="always")(erf_rational)
 
     @numba.njit(cache=True, fastmath=True, error_model="numpy")
-    def _networks(x, t, feats_k, params, wts, ints, rings, h_in, h_out, tap, pre, v):  # pragma: no cover
+    def networks_step(x, t, feats_k, params, wts, ints, rings, h_in, h_out, tap, pre, v):  # pragma: no cover
         """One sample x (C,) at time t through the networks (ring buffers (groups, span, c_in),
         float32 as the exported module's; the newest input written at row t mod span) — or its
         features feats_k (H,) when given (non-empty) — and the head into v: [M y − (W h + b) ;
@@ -100,8 +100,8 @@ if AVAILABLE:
             v[r] = m - e
 
     @numba.njit(cache=True)
-    def _scratch(ints):  # pragma: no cover - compiled
-        """The per-call work arrays of :func:`_networks` for the layout ``ints``: layer inputs and
+    def scratch(ints):  # pragma: no cover - compiled
+        """The per-call work arrays of :func:`networks_step` for the layout ``ints``: layer inputs and
         outputs (float64), taps and pre-activations (float32), the head's rows."""
         width = ints[0]
         for li in range(ints[2]):
@@ -110,10 +110,10 @@ if AVAILABLE:
                 np.empty(ints[1] * width, dtype=np.float32), np.empty(width, dtype=np.float32), np.empty(ints[7]))
 
 
-def _flat_networks(ts, head_weight, head_bias, head_matrix, window: int = 1, use_acc: bool = False,
+def flat_networks(ts, head_weight, head_bias, head_matrix, window: int = 1, use_acc: bool = False,
                    use_mag: bool = False):
     """The folded networks of an exported streaming module ``ts`` (:class:`StreamingAHRS`) as the
-    flat arrays :func:`_networks` reads: float32 weights, float64 head ``[M y − (W h + b)]`` rows,
+    flat arrays :func:`networks_step` reads: float32 weights, float64 head ``[M y − (W h + b)]`` rows,
     the int layout, and one float32 ring-buffer array that ``ts``'s (unscripted) buffers are made
     to view, so that its chunk convolutions (:func:`ring_convolutions`) and the compiled
     per-sample step advance the same state. Returns (wts, params, ints, rings, views, dilations)."""
@@ -161,7 +161,7 @@ def _flat_networks(ts, head_weight, head_bias, head_matrix, window: int = 1, use
 _SCRIPTED = {}
 
 
-def _ring_convolutions():
+def scripted_ring_convolutions():
     """:func:`tcn_ahrs.export.fused.ring_convolutions`, scripted once (TorchScript runs its
     ~40 small tensor ops ~5x faster than eager dispatch)."""
     if "ring" not in _SCRIPTED:

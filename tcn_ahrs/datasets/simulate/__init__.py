@@ -52,10 +52,10 @@ import numpy as np
 
 from ...conventions import DEG, GRAVITY
 from ...sequence import ImuSequence
-from .motion import _PROFILE_FNS
-from .params import Environment, SensorErrorModel, _split_params
-from .quat import _qexp, _qmatrix, _to_body, cumprod_quat
-from .sensors import _bias_track, _draw_device, _mag_disturbance
+from .motion import PROFILE_FNS
+from .params import Environment, SensorErrorModel, split_params
+from .quat import qexp, qmatrix, to_body, cumprod_quat
+from .sensors import bias_track, draw_device, mag_disturbance
 
 __all__ = ["simulate", "SensorErrorModel", "Environment", "load_split", "split_plan", "list_recordings",
            "PROFILES", "EXT_ACC_FLAG_THRESHOLD", "MAG_FLAG_THRESHOLD_UT", "cumprod_quat"]
@@ -103,14 +103,14 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
         ``true_acc_nav, true_vel_nav (N,3)`` ENU, ``true_mag_disturbance (N,3)`` uT body frame
         (added external field before K_mag), ``mag_disturbed, acc_disturbed, moving (N,)`` bool.
     """
-    if profile not in _PROFILE_FNS:
+    if profile not in PROFILE_FNS:
         raise ValueError(f"simulate: unknown profile {profile!r}; expected one of {list(PROFILES)}")
     if axes not in (6, 9):
         raise ValueError(f"simulate: axes must be 6 or 9, got {axes!r}")
     if not rate > 0 or not duration > 0:
         raise ValueError(f"simulate: expected rate > 0 Hz and duration > 0 s, got rate={rate!r}, "
                          f"duration={duration!r}")
-    sens, envp = _split_params(error_params)
+    sens, envp = split_params(error_params)
     seed = int(seed)
     rate = float(rate)
     dt = 1.0 / rate
@@ -121,16 +121,16 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
     ss = np.random.SeedSequence([seed, 0x51A7])
     rng_motion, rng_sensor, rng_noise, rng_dist = (np.random.default_rng(s) for s in ss.spawn(4))
 
-    omega, q0, vel_nav, acc_nav, moving = _PROFILE_FNS[profile](rng_motion, t, dt, float(duration))
+    omega, q0, vel_nav, acc_nav, moving = PROFILE_FNS[profile](rng_motion, t, dt, float(duration))
 
     # Ground truth: exact product of exponentials of the piecewise-constant true rate (Eq. 3):
     # q_k = q_0 exp(w_1 dt) ... exp(w_k dt); the first rate sample is not applied.
-    inc = _qexp(omega * dt)
+    inc = qexp(omega * dt)
     inc[0] = q0
     quat = cumprod_quat(inc)
-    r = _qmatrix(quat)
+    r = qmatrix(quat)
 
-    ext_acc_body = _to_body(r, acc_nav)
+    ext_acc_body = to_body(r, acc_nav)
     spec_force = ext_acc_body + GRAVITY * r[:, 2, :]  # R^T (a + g up): third row of R
     m_nav = envp.field_nav()
 
@@ -144,7 +144,7 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
         gyro_noise = acc_noise = mag_noise = 0.0
         b_g0 = b_a0 = np.zeros(3)
     else:
-        dev = _draw_device(device_seed, sens)
+        dev = draw_device(device_seed, sens)
         rk = sens.recording_k_std
         k_gyro = dev.k_gyro + rng_sensor.normal(0.0, rk, (3, 3))
         k_acc = dev.k_acc + rng_sensor.normal(0.0, rk, (3, 3))
@@ -153,23 +153,23 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
         b_a0 = dev.acc_bias + rng_sensor.normal(0.0, sens.acc_bias_repeatability, 3)
         hard_iron = dev.hard_iron + rng_sensor.normal(0.0, sens.hard_iron_repeatability_ut, 3)
         unit = rng_noise.standard_normal((5, n, 3))  # one draw: bias walks, then white noise
-        gyro_bias = _bias_track(unit[0], dt, b_g0, sens.gyro_bias_rw_dps * DEG)
-        acc_bias = _bias_track(unit[1], dt, b_a0, sens.acc_bias_rw)
+        gyro_bias = bias_track(unit[0], dt, b_g0, sens.gyro_bias_rw_dps * DEG)
+        acc_bias = bias_track(unit[1], dt, b_a0, sens.acc_bias_rw)
         sq = math.sqrt(rate)
         gyro_noise = unit[2] * (sens.gyro_noise_density_dps * DEG * sq)
         acc_noise = unit[3] * (sens.acc_noise_density * sq)
         mag_noise = unit[4] * (sens.mag_noise_density_ut * sq)
         rest_end = float(t[np.argmax(moving)]) if moving.any() else 0.0
-        d_nav = _mag_disturbance(rng_dist, t, envp, not_before=max(rest_end, min(10.0, 0.2 * duration)))
+        d_nav = mag_disturbance(rng_dist, t, envp, not_before=max(rest_end, min(10.0, 0.2 * duration)))
 
     gyro = omega @ k_gyro.T + gyro_bias + gyro_noise                            # Eq. 9
     accel = spec_force @ k_acc.T + acc_bias + acc_noise                         # Eq. 10
     mag_dist_body = np.zeros((n, 3))
     hit = np.any(d_nav != 0.0, axis=1)
-    mag_dist_body[hit] = _to_body(r[hit], d_nav[hit])
+    mag_dist_body[hit] = to_body(r[hit], d_nav[hit])
     mag = None
     if axes == 9:
-        mag = (_to_body(r, m_nav) + mag_dist_body) @ k_mag.T + hard_iron + mag_noise  # Eq. 11
+        mag = (to_body(r, m_nav) + mag_dist_body) @ k_mag.T + hard_iron + mag_noise  # Eq. 11
 
     meta: Dict[str, Any] = {
         "profile": profile, "seed": seed, "device_seed": int(device_seed), "noise_free": bool(noise_free),

@@ -8,7 +8,7 @@ from typing import List, Tuple
 import numpy as np
 
 from ...conventions import DEG, GRAVITY
-from .quat import _qconj, _qexp, _qlog, _qmul, _qz
+from .quat import qconj, qexp, qlog, qmul, quat_about_z
 
 
 # Smooth building blocks (continuous time, analytic derivatives)
@@ -179,8 +179,8 @@ def _random_tilt_quat(rng: np.random.Generator, max_tilt: float) -> np.ndarray:
     yaw = rng.uniform(-np.pi, np.pi)
     ang = rng.uniform(0.0, max_tilt)
     ax = rng.uniform(-np.pi, np.pi)
-    tilt = _qexp(ang * np.array([np.cos(ax), np.sin(ax), 0.0]))
-    return _qmul(_qz(yaw), tilt)
+    tilt = qexp(ang * np.array([np.cos(ax), np.sin(ax), 0.0]))
+    return qmul(quat_about_z(yaw), tilt)
 
 
 # =============================================================================
@@ -224,9 +224,9 @@ def _profile_walking(rng, t, dt, duration):
     osc_amp = np.array([3.0, 4.0, 3.0]) * DEG * rng.uniform(0.5, 1.5, size=3)
     yaw0 = rng.uniform(-np.pi, np.pi)
     # phone held in the hand: pitch/roll/yaw offset w.r.t. the walking direction
-    hold = _qmul(_qz(rng.uniform(-30, 30) * DEG),
-                 _qmul(_qexp(np.array([0.0, rng.uniform(-40, 10) * DEG, 0.0])),
-                       _qexp(np.array([rng.uniform(-15, 15) * DEG, 0.0, 0.0]))))
+    hold = qmul(quat_about_z(rng.uniform(-30, 30) * DEG),
+                 qmul(qexp(np.array([0.0, rng.uniform(-40, 10) * DEG, 0.0])),
+                       qexp(np.array([rng.uniform(-15, 15) * DEG, 0.0, 0.0]))))
     # heading turns (45-180 deg, 1.5-3 s) inside the motion segments
     t_on, t_len, t_ang = [], [], []
     for s0, s1 in zip(env.starts, env.ends):
@@ -269,9 +269,9 @@ def _profile_walking(rng, t, dt, duration):
     osc = e[:, None] * osc_amp * sin[:, 0:3]
     c, sn = np.cos(0.5 * psi), np.sin(0.5 * psi)  # Rz(psi) hold, written out (hold is constant)
     h0, h1, h2, h3 = hold
-    q = _qmul(np.stack([c * h0 - sn * h3, c * h1 - sn * h2, c * h2 + sn * h1, c * h3 + sn * h0], -1),
-              _qexp(osc))
-    omega = _qlog(_qmul(_qconj(q[:-1]), q[1:])) / dt
+    q = qmul(np.stack([c * h0 - sn * h3, c * h1 - sn * h2, c * h2 + sn * h1, c * h3 + sn * h0], -1),
+              qexp(osc))
+    omega = qlog(qmul(qconj(q[:-1]), q[1:])) / dt
     q0 = q[1]
     e, e1, psi, dpsi, sin, cos = e[1:], e1[1:], psi[1:], dpsi[1:], sin[1:], cos[1:]
     cp, sp = np.cos(psi), np.sin(psi)
@@ -312,12 +312,12 @@ def _profile_drone(rng, t, dt, duration):
     tilt = np.stack([1.0 + zb[:, 2], -zb[:, 1], zb[:, 0], np.zeros_like(zb[:, 0])], -1)
     tilt /= np.linalg.norm(tilt, axis=1, keepdims=True)
     yaw = yaw0 + _eval_sinusoids(yaw_p, tau)[0][:, 0]
-    q = _qmul(tilt, _qz(yaw))  # R = R_tilt Rz(yaw): body z = zb
-    omega = _qlog(_qmul(_qconj(q[:-1]), q[1:])) / dt
+    q = qmul(tilt, quat_about_z(yaw))  # R = R_tilt Rz(yaw): body z = zb
+    omega = qlog(qmul(qconj(q[:-1]), q[1:])) / dt
     return omega, q[1], vel[1:], acc[1:], env.moving(t)
 
 
-_PROFILE_FNS = {
+PROFILE_FNS = {
     "static": _profile_static,
     "slow_rotation": lambda rng, t, dt, d: _profile_rotation(rng, t, dt, d, 25.0, (0.05, 0.5), 0.3),
     "fast_rotation": lambda rng, t, dt, d: _profile_rotation(rng, t, dt, d, 150.0, (0.2, 1.5), 1.5),

@@ -101,7 +101,7 @@ class Environment:
         return np.array([h * math.sin(dec), h * math.cos(dec), -self.field_ut * math.sin(inc)])
 
 
-def _split_params(params: Mapping[str, Any]) -> Tuple[SensorErrorModel, Environment]:
+def split_params(params: Mapping[str, Any]) -> Tuple[SensorErrorModel, Environment]:
     """Route keyword overrides to :class:`SensorErrorModel` / :class:`Environment` fields."""
     sens_keys = {f.name for f in dataclasses.fields(SensorErrorModel)}
     env_keys = {f.name for f in dataclasses.fields(Environment)}

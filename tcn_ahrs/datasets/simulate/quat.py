@@ -15,7 +15,7 @@ import numpy as np
 # =============================================================================
 
 
-def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+def qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Hamilton product of (..., 4) quaternions (w,x,y,z); as rotations ``R(p) @ R(q)``."""
     pw, px, py, pz = p[..., 0], p[..., 1], p[..., 2], p[..., 3]
     qw, qx, qy, qz = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
@@ -25,11 +25,11 @@ def _qmul(p: np.ndarray, q: np.ndarray) -> np.ndarray:
                      pw * qz + px * qy - py * qx + pz * qw], -1)
 
 
-def _qconj(q: np.ndarray) -> np.ndarray:
+def qconj(q: np.ndarray) -> np.ndarray:
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
-def _qexp(phi: np.ndarray) -> np.ndarray:
+def qexp(phi: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) -> unit quaternions (..., 4) (closed form, Taylor near 0)."""
     theta2 = np.sum(phi * phi, -1, keepdims=True)
     theta = np.sqrt(theta2)
@@ -41,7 +41,7 @@ def _qexp(phi: np.ndarray) -> np.ndarray:
     return np.concatenate([w, half_sinc * phi], -1)
 
 
-def _qlog(q: np.ndarray) -> np.ndarray:
+def qlog(q: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4) -> rotation vectors (..., 3), angle in [0, pi]."""
     q = np.where(q[..., :1] < 0, -q, q)
     w, v = q[..., :1], q[..., 1:]
@@ -53,14 +53,14 @@ def _qlog(q: np.ndarray) -> np.ndarray:
     return scale * v
 
 
-def _qz(yaw: np.ndarray) -> np.ndarray:
+def quat_about_z(yaw: np.ndarray) -> np.ndarray:
     """Rotation about the z axis by ``yaw`` (...,) -> (..., 4)."""
     yaw = np.asarray(yaw, dtype=np.float64)
     z = np.zeros_like(yaw)
     return np.stack([np.cos(0.5 * yaw), z, z, np.sin(0.5 * yaw)], -1)
 
 
-def _qmatrix(q: np.ndarray) -> np.ndarray:
+def qmatrix(q: np.ndarray) -> np.ndarray:
     """Unit quaternions (N, 4) -> rotation matrices (N, 3, 3)."""
     w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     r = np.empty((q.shape[0], 3, 3))
@@ -76,7 +76,7 @@ def _qmatrix(q: np.ndarray) -> np.ndarray:
     return r
 
 
-def _to_body(r: np.ndarray, v_nav: np.ndarray) -> np.ndarray:
+def to_body(r: np.ndarray, v_nav: np.ndarray) -> np.ndarray:
     """``R^T v`` for (N,3,3) nav_from_body and (N,3) or (3,) navigation vectors -> (N,3)."""
     if v_nav.ndim == 1:
         return v_nav[0] * r[:, 0, :] + v_nav[1] * r[:, 1, :] + v_nav[2] * r[:, 2, :]
@@ -95,7 +95,7 @@ def cumprod_quat(q: np.ndarray) -> np.ndarray:
     if n <= 64:
         out = q.copy()
         for k in range(1, n):
-            out[k] = _qmul(out[k - 1], out[k])
+            out[k] = qmul(out[k - 1], out[k])
         return out / np.linalg.norm(out, axis=1, keepdims=True)
     chunk = int(math.ceil(math.sqrt(n)))
     count = int(math.ceil(n / chunk))
@@ -114,7 +114,7 @@ def cumprod_quat(q: np.ndarray) -> np.ndarray:
     totals = np.stack([w[-1], x[-1], y[-1], z[-1]], -1)  # (C, 4)
     prefix = cumprod_quat(totals)
     before = np.concatenate([[[1.0, 0.0, 0.0, 0.0]], prefix[:-1]])  # exclusive prefix (C, 4)
-    out = _qmul(before[None, :, :], c.transpose(1, 2, 0))  # (L, C, 4)
+    out = qmul(before[None, :, :], c.transpose(1, 2, 0))  # (L, C, 4)
     out = out.transpose(1, 0, 2).reshape(count * chunk, 4)[:n]
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 

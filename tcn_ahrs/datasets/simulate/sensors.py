@@ -32,7 +32,7 @@ def _k_matrix(rng, scale_std, mis_std) -> np.ndarray:
     return k + off
 
 
-def _draw_device(device_seed: int, p: SensorErrorModel) -> _Device:
+def draw_device(device_seed: int, p: SensorErrorModel) -> _Device:
     rng = np.random.default_rng([int(device_seed), 0xDE71CE])
     k_gyro = _k_matrix(rng, p.gyro_scale_std, p.gyro_misalignment_std)
     k_acc = _k_matrix(rng, p.acc_scale_std, p.acc_misalignment_std)
@@ -44,7 +44,7 @@ def _draw_device(device_seed: int, p: SensorErrorModel) -> _Device:
     return _Device(k_gyro, k_acc, k_mag, gyro_bias, acc_bias, hard_iron)
 
 
-def _bias_track(unit_normal: np.ndarray, dt: float, static: np.ndarray, rw: float) -> np.ndarray:
+def bias_track(unit_normal: np.ndarray, dt: float, static: np.ndarray, rw: float) -> np.ndarray:
     """(N, 3) static bias plus a random walk starting at 0 (increments ``rw sqrt(dt) n_k``,
     from the (N, 3) standard normals ``unit_normal``)."""
     steps = unit_normal * (rw * math.sqrt(dt))
@@ -52,7 +52,7 @@ def _bias_track(unit_normal: np.ndarray, dt: float, static: np.ndarray, rw: floa
     return static + np.cumsum(steps, axis=0)
 
 
-def _mag_disturbance(rng, t: np.ndarray, env: Environment, not_before: float) -> np.ndarray:
+def mag_disturbance(rng, t: np.ndarray, env: Environment, not_before: float) -> np.ndarray:
     """(N, 3) transient external field in ENU (uT): dipole pass-bys
     ``peak * u * ((1 + x^2)^(-3/2) - c) / (1 - c)`` with ``x = (t - t_c)/tau``, cut at
     ``|x| = 3`` (``c = 10^(-3/2)`` keeps the field continuous)."""
