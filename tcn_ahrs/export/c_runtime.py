@@ -228,6 +228,7 @@ HEADER = r"""/* @NAME@.h: a tcn-ahrs residual model (learned residuals on the VQ
 #endif
 
 #define @UP@_AXES @C@
+#define @NAME@_AXES @C@   /* the same, under the lower-case prefix (for token pasting) */
 #define @UP@_N_STATE @N_STATE@
 #define @UP@_N_COEFF @N_COEFF@
 #define @UP@_N_RING @N_RING@
@@ -497,3 +498,21 @@ int @NAME@_run(@NAME@_state *st, const float *samples, uint32_t n, float dt, flo
     return @UP@_OK;
 }
 """.replace("@HELPERS@", HELPERS)
+
+
+def main(argv=None) -> int:
+    """``python -m tcn_ahrs.export.c_runtime CKPT OUT_DIR [NAME]``: write NAME.h and NAME.c."""
+    import sys
+
+    args = list(sys.argv[1:] if argv is None else argv)
+    if len(args) not in (2, 3):
+        print("usage: python -m tcn_ahrs.export.c_runtime CKPT OUT_DIR [NAME]", file=sys.stderr)
+        return 2
+    paths = export_c(args[0], args[1], args[2] if len(args) == 3 else None)
+    print(paths["h"])
+    print(paths["c"])
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
