@@ -97,6 +97,17 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     kk, nl, n_feat, n_head = ints[1], ints[2], ints[6], ints[7]
     layers = [ints[_HEADER + _PER_LAYER * i:_HEADER + _PER_LAYER * (i + 1)] for i in range(nl)]
     width = max([c, n_feat] + [g * cout for g, _, cout, *_ in layers] + [cin * g for g, cin, *_ in layers])
+    # weights tap-major per group, (groups, K c_in, c_out): conv_layer's layout
+    wt = wts.copy()
+    calls = []
+    for li, (g, cin, cout, d, span, wo, bo, ro) in enumerate(layers):
+        n_tap = kk * cin
+        wt[wo:wo + g * cout * n_tap] = wts[wo:wo + g * cout * n_tap].reshape(g, cout, n_tap).transpose(0, 2, 1).reshape(-1)
+        calls.append(f"    /* layer {li}: {g} group(s), {cin} -> {cout} channels, dilation {d} */\n"
+                     f"    conv_layer(st->ring + {ro}, st->pos[{li}], h, out, {g}, {cin}, {cout}, {d}, {span}, {wo}, {bo});\n"
+                     f"    st->pos[{li}] = st->pos[{li}] + 1 == {span} ? 0 : st->pos[{li}] + 1;\n"
+                     f"    for (i = 0; i < {g * cout}; i++) h[i] = out[i];")
+    wts = wt
     up = name.upper()
     p = list(loop.params.vector())
     s0 = K.initial_state(loop.params)
@@ -107,7 +118,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
         "N_PARAM": str(K.N_PARAM), "N_RING": str(max(n_ring, 1)), "N_LAYERS": str(max(nl, 1)), "K": str(kk),
         "NL": str(nl), "N_FEAT": str(n_feat), "N_HEAD": str(n_head), "N_TRUST": str(n_trust), "WIDTH": str(width),
         "N_WTS": str(wts.size), "USE_MAG": "1" if use_mag else "0",
-        "LAYERS": ",\n".join("    {" + ", ".join(str(v) for v in l_) + "}" for l_ in layers) or "    {0}",
+        "LAYER_CALLS": "\n".join(calls),
         "WTS": _f32(wts), "HEAD_W": _f64(head_w), "HEAD_B": _f64(head_b), "PARAMS": _f64(p), "STATE0": _f64(s0),
         "BIAS0": _f64(bias0), "LIMITS": _f64(INPUT_LIMITS[:c]), "MAX_DT": repr(float(MAX_DT)),
         "ERF_P": _f64(_ERF_P), "ERF_Q": _f64(_ERF_Q), "N_ERF_P": str(len(_ERF_P)), "N_ERF_Q": str(len(_ERF_Q)),
@@ -281,10 +292,6 @@ static inline REAL r_tanh(REAL x) { return TCN_AHRS_REAL_IS_FLOAT ? (REAL)tanhf(
 /* ------------------------------------------------------------------ the backbone (generated) */
 @KERNELS@
 /* ------------------------------------------------------------------ the model's constants */
-/* per layer: groups, c_in, c_out (per group), dilation, span, weight offset, bias offset, ring offset */
-static const int32_t LAYERS[@N_LAYERS@][8] = {
-@LAYERS@
-};
 static const float WTS[@N_WTS@] = {
 @WTS@
 };
@@ -321,48 +328,48 @@ static inline REAL erf_rational(REAL x)   /* streaming/networks.py erf_rational 
     return x * p / q;
 }
 
-/* One sample x through the stacked networks on their ring buffers (dilated causal convolutions,
- * float32, GELU sqrt(2)-scaled as u (1 + erf(u))), then the head: v = -(W h + b) =
- * -[gyro net before tanh (3), trust logits]. */
+/* One dilated causal convolution layer on its ring buffer (written once; called with constant
+ * sizes per layer so that the compiler unrolls and vectorises it): the newest input h (G*CIN)
+ * written at row p, the K taps t - (K - 1 - j) D read oldest first, per group the float32 sums
+ * u_o = b_o + sum_i W[i][o] tap_i (weights tap-major: each output one sequential sum, every
+ * output of a tap at once), then the sqrt(2)-scaled GELU u (1 + erf(u)) into out (G*COUT). */
+static inline void conv_layer(float *ring, int p, const REAL *h, REAL *out, const int G, const int CIN,
+                              const int COUT, const int D, const int SPAN, const int WO, const int BO)
+{
+    float tap[@K@ * WIDTH], u[WIDTH];
+    int gr, j, i, o;
+    for (gr = 0; gr < G; gr++)
+        for (i = 0; i < CIN; i++) ring[(gr * SPAN + p) * CIN + i] = (float)h[gr * CIN + i];
+    for (gr = 0; gr < G; gr++) {
+        const float *w = WTS + WO + gr * @K@ * CIN * COUT;
+        for (j = 0; j < @K@; j++) {
+            int row = p - (@K@ - 1 - j) * D;
+            const float *rb;
+            if (row < 0) row += SPAN;
+            rb = ring + (gr * SPAN + row) * CIN;
+            for (i = 0; i < CIN; i++) tap[j * CIN + i] = rb[i];
+        }
+        for (o = 0; o < COUT; o++) u[o] = WTS[BO + gr * COUT + o];
+        for (i = 0; i < @K@ * CIN; i++) {
+            const float t = tap[i];
+            const float *wi = w + i * COUT;
+            for (o = 0; o < COUT; o++) u[o] += wi[o] * t;
+        }
+        for (o = 0; o < COUT; o++) {
+            const REAL uu = (REAL)u[o];
+            out[gr * COUT + o] = uu * (R_(1.0) + erf_rational(uu));
+        }
+    }
+}
+
+/* One sample x through the stacked networks (float32), then the head:
+ * v = -(W h + b) = -[gyro net before tanh (3), trust logits]. */
 static void networks(@NAME@_state *st, const REAL *x, REAL *v)
 {
-    REAL h[WIDTH];
-    float tap[@K@ * WIDTH];
-    int li, gr, j, i, o, r;
+    REAL h[WIDTH], out[WIDTH];
+    int i, r;
     for (i = 0; i < @C@; i++) h[i] = x[i];
-    for (li = 0; li < @NL@; li++) {
-        const int32_t *L = LAYERS[li];
-        const int g = L[0], cin = L[1], cout = L[2], d = L[3], span = L[4], wo = L[5], bo = L[6], ro = L[7];
-        const int n_tap = @K@ * cin, p = st->pos[li];
-        REAL out[WIDTH];
-        for (gr = 0; gr < g; gr++)
-            for (i = 0; i < cin; i++) st->ring[ro + (gr * span + p) * cin + i] = (float)h[gr * cin + i];
-        for (gr = 0; gr < g; gr++) {
-            for (j = 0; j < @K@; j++) {   /* taps oldest first: t - (K - 1 - j) d */
-                int row = p - (@K@ - 1 - j) * d;
-                const float *rb;
-                if (row < 0) row += span;
-                rb = st->ring + ro + (gr * span + row) * cin;
-                for (i = 0; i < cin; i++) tap[j * cin + i] = rb[i];
-            }
-            for (o = 0; o < cout; o++) {
-                const float *w = WTS + wo + (gr * cout + o) * n_tap;
-                float a[8] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f}, u;
-                REAL uu;
-                int m;
-                /* eight partial sums (the order numba's fastmath may also choose): no dependency
-                 * chain, so the compiler vectorises without -ffast-math */
-                for (i = 0; i + 8 <= n_tap; i += 8)
-                    for (m = 0; m < 8; m++) a[m] += w[i + m] * tap[i + m];
-                for (; i < n_tap; i++) a[0] += w[i] * tap[i];
-                u = WTS[bo + gr * cout + o] + (((a[0] + a[4]) + (a[1] + a[5])) + ((a[2] + a[6]) + (a[3] + a[7])));
-                uu = (REAL)u;
-                out[gr * cout + o] = uu * (R_(1.0) + erf_rational(uu));
-            }
-        }
-        st->pos[li] = p + 1 == span ? 0 : p + 1;
-        for (i = 0; i < g * cout; i++) h[i] = out[i];
-    }
+@LAYER_CALLS@
     for (r = 0; r < @N_HEAD@; r++) {
         REAL e = HEAD_B[r];
         for (i = 0; i < @N_FEAT@; i++) e += HEAD_W[r * @N_FEAT@ + i] * h[i];
