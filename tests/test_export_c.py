@@ -293,3 +293,67 @@ def test_csv_example_builds_and_streams(built, tmp_path):
     c_rt.reset(seq.quat[0])
     ref = np.stack([c_rt.step(imu[k], 0.01)[1] for k in range(imu.shape[0]) if k != 50])
     assert np.abs(got[:, :4] - ref).max() < 1e-6
+
+
+# ------------------------------------------------------------------ the translator's subset
+TOY = '''
+import math
+from tcn_ahrs.kernels.ops import float_ops
+ops = float_ops()
+jit, where = ops.jit, ops.where
+N_OFF = 2
+HALF = 0.5
+
+@jit
+def swap(s, x, y):
+    x, y = y, x * HALF           # Python evaluates the right-hand side first
+    return x, y
+
+@jit
+def step(s, p, x):
+    a, b = swap(s, x, s[N_OFF])
+    for i in range(3):
+        s[i] = where(s[i] > a, s[i] - b, s[i] + a / 7)
+    if p[0] > 0.5:
+        s[N_OFF + 1] = math.sqrt(a * a + b ** 2) + 3 / 4
+'''
+
+
+def _toy(tmp_path, text, name):
+    import importlib.util
+
+    f = tmp_path / f"{name}.py"
+    f.write_text(text)
+    spec = importlib.util.spec_from_file_location(name, f)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@needs_cc
+def test_translator_keeps_python_semantics(tmp_path):
+    import ctypes as ct
+
+    mod = _toy(tmp_path, TOY, "toy_kernel")
+    src, sig = kernel_c(mod, "toy_", ["step"])
+    assert "const REAL *p" in sig["step"] and "REAL *ret1" in sig["swap"]
+    (tmp_path / "toy.c").write_text("#include <math.h>\n" + HELPERS + src.replace("static void toy_step", "void toy_step"))
+    lib = ct.CDLL(compile_c(tmp_path / "toy.c", tmp_path / "libtoy.so", "double", CC))
+    dbl = ct.POINTER(ct.c_double)
+    for flag in (0.0, 1.0):
+        s_py = np.array([0.3, -2.0, 1.5, 9.0])
+        s_c = s_py.copy()
+        p = np.array([flag])
+        mod.step(s_py, p, 0.7)
+        lib.toy_step(s_c.ctypes.data_as(dbl), p.ctypes.data_as(dbl), ct.c_double(0.7))
+        assert np.array_equal(s_c, s_py)
+        assert (s_py[3] != 9.0) == bool(flag)
+
+
+@pytest.mark.parametrize("body", ["    while x > 0:\n        x = x - 1\n", "    s[0] = x % 2\n",
+                                  "    s[0] = [x][0]\n", "    s[0] = x ** 3\n"])
+def test_translator_refuses_what_is_outside_the_subset(tmp_path, body):
+    text = "from tcn_ahrs.kernels.ops import float_ops\njit = float_ops().jit\n\n@jit\ndef k(s, x):\n" + body
+    mod = _toy(tmp_path, text, "bad_kernel")
+    with pytest.raises(ExportError, match="outside the kernel subset"):
+        kernel_c(mod, "b_", ["k"])

@@ -297,6 +297,8 @@ class KernelToC:
                      self.signature(fn) + "\n{"]
             for n, t in fn.locals.items():
                 lines.append(f"    {self._ctype(t)} {self._var(n)} = 0;")
+            used = {node.id for st in fn.node.body for node in ast.walk(st) if isinstance(node, ast.Name)}
+            lines += [f"    (void){self._var(n)};" for n, _ in fn.params if n not in used]  # -Wunused-parameter
             self._fn = fn
             self._tmp = 0
             lines += self._block(fn.node.body, 1)
