@@ -166,7 +166,8 @@ def compile_c(c_path, out_so, real: str = "double", cc: Optional[str] = None) ->
     cc = cc or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
     if cc is None:
         raise ExportError("C export: no C compiler (cc) found")
-    cmd = [cc, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", f"-DTCN_AHRS_REAL={real}",
+    cmd = [cc, "-std=c99", "-pedantic", "-O2", "-Wall", "-Wextra", "-Wshadow", "-Wdouble-promotion", "-Werror",
+           "-shared", "-fPIC", f"-DTCN_AHRS_REAL={real}",
            str(c_path), "-o", str(out_so), "-lm"]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
@@ -266,6 +267,9 @@ typedef struct {
     float ring[@UP@_N_RING];            /* the networks' ring buffers (float32) */
 } @NAME@_state;
 
+#ifdef __cplusplus
+extern "C" {
+#endif
 int @NAME@_init(@NAME@_state *st, const float q0[4]);
 int @NAME@_reset(@NAME@_state *st, const float q0[4]);
 int @NAME@_step(@NAME@_state *st, const float sample[@C@], float dt, float quat_out[4], float omega_out[3],
@@ -275,6 +279,9 @@ int @NAME@_step(@NAME@_state *st, const float sample[@C@], float dt, float quat_
 int @NAME@_run(@NAME@_state *st, const float *samples, uint32_t n, float dt, float *out);
 /* sizeof(@NAME@_state), for callers through an FFI */
 uint32_t @NAME@_state_size(void);
+#ifdef __cplusplus
+}
+#endif
 
 #endif
 """
@@ -391,15 +398,17 @@ static int check(const float *x, float dt)
 
 int @NAME@_reset(@NAME@_state *st, const float q0[4])
 {
-    REAL n;
+    REAL q[4], n;
     int i;
     if (st == 0 || q0 == 0) return @UP@_E_NULL;
-    for (i = 0; i < 4; i++)
+    for (i = 0; i < 4; i++) {
         if (!isfinite(q0[i])) return @UP@_E_Q0;
-    n = r_sqrt((REAL)q0[0] * q0[0] + (REAL)q0[1] * q0[1] + (REAL)q0[2] * q0[2] + (REAL)q0[3] * q0[3]);
+        q[i] = (REAL)q0[i];
+    }
+    n = r_sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     if (!(n > R_(0.0)) || !isfinite(n)) return @UP@_E_Q0;
     memset(st, 0, sizeof(*st));   /* rings: the batch model's causal zero padding */
-    for (i = 0; i < 4; i++) st->q0[i] = (REAL)q0[i] / n;
+    for (i = 0; i < 4; i++) st->q0[i] = q[i] / n;
     st->m_conj[0] = R_(1.0);
     st->last_dt = R_(-1.0);
     return @UP@_OK;
