@@ -1,0 +1,359 @@
+"""The C99 runtime generated from a checkpoint (tcn_ahrs.export.c_runtime): its backbone is the
+kernel's own source translated (equal to the Python kernel), the whole runtime gives what the
+numba streaming runtime gives over whole recordings, refuses bad samples before its state
+changes, and the CSV example builds and streams."""
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tcn_ahrs.datasets.simulate import simulate
+from tcn_ahrs.export.c_kernel import HELPERS, kernel_c
+from tcn_ahrs.export.c_runtime import CRuntime, compile_c, export_c, generate_c
+from tcn_ahrs.export.inputs import ExportError
+from tcn_ahrs.filters import backbone as bb
+from tcn_ahrs.kernels import backbone as K
+
+ROOT = Path(__file__).resolve().parents[1]
+CKPTS = ROOT / "checkpoints"
+# ../shared beside the checkout (a git worktree one level deeper: ../../shared)
+BROAD = next((p / "shared" / "datasets" / "broad" for p in (ROOT.parent, ROOT.parent.parent)
+              if (p / "shared" / "datasets" / "broad").is_dir()), ROOT.parent / "shared" / "datasets" / "broad")
+CC = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler")
+TOL = 1e-4  # rad: the C runtime (double backbone) against BackboneStreaming
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation angle (rad) between (N, 4) quaternions, exact near zero (atan2 of conj(a) b)."""
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    aw, ax, ay, az = a.T
+    bw, bx, by, bz = b.T
+    w = aw * bw + ax * bx + ay * by + az * bz
+    x = aw * bx - ax * bw - ay * bz + az * by
+    y = aw * by + ax * bz - ay * bw - az * bx
+    z = aw * bz - ax * by + ay * bx - az * bw
+    return 2.0 * np.arctan2(np.sqrt(x * x + y * y + z * z), np.abs(w))
+
+
+def _imu(seq, axes):
+    return np.concatenate([seq.gyro, seq.accel] + ([seq.mag] if axes == 9 else []), 1).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """name -> (CRuntime of the double build, the model's BackboneStreaming, generated paths)."""
+    from tcn_ahrs.checkpoint import model_from_checkpoint
+
+    pytest.importorskip("numba")
+    from tcn_ahrs.streaming import BackboneStreaming
+
+    if CC is None:
+        pytest.skip("no C compiler")
+    out = tmp_path_factory.mktemp("c_runtime")
+    libs = {}
+    for name in ("broad9", "broad6"):
+        paths = export_c(CKPTS / f"{name}.ckpt", out, name)
+        so = compile_c(paths["c"], out / f"lib{name}.so", "double", CC)
+        stream = BackboneStreaming(model_from_checkpoint(CKPTS / f"{name}.ckpt"))
+        stream.chunk_networks = 1 << 30  # the networks per sample, as the C runtime
+        libs[name] = (CRuntime(so, name, int(name[-1])), stream, paths)
+    return libs
+
+
+def _compare(c_rt, stream, imu, dt, q0):
+    q0 = np.asarray(q0, dtype=np.float32)  # both runtimes from the same float32 inputs
+    c_rt.reset(q0)
+    code, out = c_rt.run(imu, dt)
+    assert code == 0
+    q_ref, w_ref = stream.run(imu.astype(np.float64), float(dt), np.asarray(q0, dtype=np.float64))
+    return float(_angle(out[:, :4].astype(np.float64), q_ref).max()), float(np.abs(out[:, 4:] - w_ref).max())
+
+
+# ------------------------------------------------------------------ the backbone alone
+DRIVER = r"""
+void bb_run(const double *p, double *s, const double *g, const double *a, const double *m, const double *dt,
+            const double *ta, const double *tm, const double *tb, int n, int use_mag, double *q, double *f)
+{
+    double c[%(N_COEFF)d], last = -1.0;
+    int i;
+    for (i = 0; i < n; i++) {
+        if (dt[i] != last) { bb_coefficients(p, dt[i], c); last = dt[i]; }
+        bb_gyro_update(s, p, c, g[3 * i], g[3 * i + 1], g[3 * i + 2]);
+        if (a[3 * i] != 0.0 || a[3 * i + 1] != 0.0 || a[3 * i + 2] != 0.0)
+            bb_acc_update(s, p, c, a[3 * i], a[3 * i + 1], a[3 * i + 2], ta[i], tb[i]);
+        if (use_mag && (m[3 * i] != 0.0 || m[3 * i + 1] != 0.0 || m[3 * i + 2] != 0.0))
+            bb_mag_update(s, p, c, m[3 * i], m[3 * i + 1], m[3 * i + 2], tm[i]);
+        if (use_mag) bb_quat9(s, q + 4 * i, q + 4 * i + 1, q + 4 * i + 2, q + 4 * i + 3);
+        else bb_quat6(s, q + 4 * i, q + 4 * i + 1, q + 4 * i + 2, q + 4 * i + 3);
+        f[6 * i] = s[%(S_BIAS)d]; f[6 * i + 1] = s[%(S_BIAS)d + 1]; f[6 * i + 2] = s[%(S_BIAS)d + 2];
+        f[6 * i + 3] = s[%(S_REST)d]; f[6 * i + 4] = s[%(S_MAGDIST)d]; f[6 * i + 5] = s[%(S_DELTA)d];
+    }
+}
+"""
+
+
+@needs_cc
+def test_the_translated_backbone_equals_the_python_kernel(tmp_path):
+    """kernels/backbone.py translated to C (tcn_ahrs.export.c_kernel) steps as the kernel does
+    (numba, float64), on every path: varying dt, trusts, rest, magnetic rejection, both
+    settings of the parameter branches."""
+    import ctypes as ct
+
+    src, _ = kernel_c(K, "bb_", ("coefficients", "gyro_update", "acc_update", "mag_update", "quat6", "quat9"))
+    code = "#include <math.h>\n" + HELPERS + src + DRIVER % {"N_COEFF": K.N_COEFF, "S_BIAS": K.S_BIAS,
+                                                             "S_REST": K.S_REST, "S_MAGDIST": K.S_MAGDIST,
+                                                             "S_DELTA": K.S_DELTA}
+    (tmp_path / "bb.c").write_text(code)
+    lib = ct.CDLL(compile_c(tmp_path / "bb.c", tmp_path / "libbb.so", "double", CC))
+    seq = simulate("walking", 40.0, 100.0, seed=5, axes=9, mag_disturbances_per_minute=3)
+    n = seq.gyro.shape[0]
+    rng = np.random.default_rng(0)
+    dt = np.where(rng.random(n) < 0.1, 0.012, 0.01)  # coefficients recomputed when dt changes
+    acc = seq.accel.copy()
+    acc[100:105] = 0.0  # skipped, as VQF
+    trusts = [rng.uniform(0.0, 2.0, n) for _ in range(3)]
+    dbl = ct.POINTER(ct.c_double)
+    for params, use_mag in ((K.BackboneParams(), True), (K.BackboneParams(), False),
+                            (K.BackboneParams(mag_current_tau=0.0, rest_bias=0.0), True),
+                            (K.BackboneParams(motion_bias=0.0, mag_rejection=0.0), True)):
+        q0 = np.array([0.9, 0.1, -0.2, 0.3])
+        ref = bb.run(seq.gyro, acc, seq.mag if use_mag else None, dt, params, q0=q0, acc_trust=trusts[0],
+                     mag_trust=trusts[1], bias_trust=trusts[2])
+        s = bb.start_state(params, q0)
+        q, f = np.zeros((n, 4)), np.zeros((n, 6))
+        args = [np.ascontiguousarray(v, dtype=np.float64) for v in
+                (np.asarray(params.vector()), s, seq.gyro, acc, seq.mag, dt, *trusts)]
+        lib.bb_run(*[a.ctypes.data_as(dbl) for a in args], ct.c_int(n), ct.c_int(int(use_mag)),
+                   q.ctypes.data_as(dbl), f.ctypes.data_as(dbl))
+        assert np.abs(q - ref["quat"]).max() < 1e-9
+        assert np.abs(f[:, 0:3] - ref["gyro_bias"]).max() < 1e-11
+        assert np.array_equal(f[:, 3] > 0.5, ref["rest"])
+        assert np.array_equal(f[:, 4] > 0.5, ref["mag_disturbed"])
+        if params.rest_bias > 0.5:
+            assert ref["rest"].any()
+        if use_mag and params.mag_rejection > 0.5:
+            assert ref["mag_disturbed"].any()
+
+
+@needs_cc
+@pytest.mark.parametrize("axes", [9, 6])
+def test_untrained_model_runs_as_the_backbone(tmp_path, axes):
+    """The untrained residual model (= the backbone) generated as C: BackboneStreaming's numbers."""
+    pytest.importorskip("numba")
+    from test_residual import residual_model
+
+    from tcn_ahrs.streaming import BackboneStreaming
+
+    model = residual_model(axes).eval()
+    gen = generate_c(model, "untrained")
+    (tmp_path / "untrained.h").write_text(gen["h"])
+    (tmp_path / "untrained.c").write_text(gen["c"])
+    c_rt = CRuntime(compile_c(tmp_path / "untrained.c", tmp_path / "lib.so", "double", CC), "untrained", axes)
+    seq = simulate("drone", 30.0, 100.0, seed=2, axes=axes)
+    ang, dw = _compare(c_rt, BackboneStreaming(model), _imu(seq, axes), np.float32(0.01), seq.quat[0])
+    assert ang < 1e-6 and dw < 1e-6
+
+
+# ------------------------------------------------------------------ shipped checkpoints
+@pytest.mark.parametrize("name", ["broad9", "broad6"])
+def test_shipped_checkpoint_matches_the_streaming_runtime_on_a_simulated_recording(built, name):
+    c_rt, stream, _ = built[name]
+    axes = int(name[-1])
+    for profile, seed in (("walking", 1), ("fast_rotation", 2)):
+        seq = simulate(profile, 60.0, 200.0, seed=seed, axes=axes)
+        ang, dw = _compare(c_rt, stream, _imu(seq, axes), np.float32(1.0 / 200.0), seq.quat[0])
+        assert ang <= TOL, (profile, ang)
+        assert dw < 1e-5
+
+
+@pytest.mark.parametrize("name", ["broad9", "broad6"])
+@pytest.mark.parametrize("rec", ["05_undisturbed_slow_rotation_with_breaks_B", "29_disturbed_stationary_magnet_B"])
+def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(built, name, rec):
+    from tcn_ahrs.datasets import broad
+
+    if not (BROAD / f"{rec}.hdf5").is_file():
+        pytest.skip(f"BROAD recording {rec} not found under ../shared/datasets/broad")
+    c_rt, stream, _ = built[name]
+    axes = int(name[-1])
+    seq = broad.load_recording(BROAD, rec)
+    k0 = int(np.argmax(np.isfinite(seq.quat).all(1)))
+    ang, dw = _compare(c_rt, stream, _imu(seq, axes), np.float32(1.0 / seq.rate), seq.quat[k0])
+    assert ang <= TOL, ang
+    assert dw < 1e-5
+
+
+@needs_cc
+def test_float_backbone_builds_and_stays_close(built, tmp_path):
+    """-DTCN_AHRS_REAL=float compiles cleanly; it is NOT within the 1e-4 rad parity (~6e-4 rad
+    over a minute, see docs), hence the double default; this bounds it."""
+    _, stream, paths = built["broad9"]
+    c_rt = CRuntime(compile_c(paths["c"], tmp_path / "libf.so", "float", CC), "broad9", 9)
+    seq = simulate("walking", 60.0, 200.0, seed=1, axes=9)
+    ang, _ = _compare(c_rt, stream, _imu(seq, 9), np.float32(1.0 / 200.0), seq.quat[0])
+    assert ang < 5e-3
+    assert c_rt.state_size < built["broad9"][0].state_size
+
+
+# ------------------------------------------------------------------ bad inputs
+@pytest.mark.parametrize("name", ["broad9", "broad6"])
+def test_bad_samples_are_refused_before_the_state_changes(built, name):
+    c_rt, _, _ = built[name]
+    axes = int(name[-1])
+    seq = simulate("walking", 3.0, 200.0, seed=4, axes=axes)
+    imu = _imu(seq, axes)
+    dt = 1.0 / 200.0
+    q0 = seq.quat[0]
+    c_rt.reset(q0)
+    _, ref = c_rt.run(imu, dt)
+    k = 300
+    cases = []
+    for ch, v, code in ((4, np.nan, 1), (0, np.inf, 1), (axes - 1, -np.inf, 1), (1, 1e3, 2), (5, -1e5, 2)):
+        bad = imu[k].copy()
+        bad[ch] = v
+        cases.append((bad, dt, code))
+    cases += [(imu[k], 0.0, 3), (imu[k], -dt, 3), (imu[k], np.nan, 3), (imu[k], np.inf, 3), (imu[k], 2.0, 3)]
+    c_rt.reset(q0)
+    c_rt.run(imu[:k], dt)
+    for bad, d, want in cases:
+        before = c_rt.snapshot()
+        code, *_ = c_rt.step(bad, d)
+        assert code == want
+        assert c_rt.snapshot() == before  # no state changed
+    code, out = c_rt.run(imu[k:], dt)  # as if the bad samples had never come
+    assert code == 0
+    assert np.array_equal(out, ref[k:])
+    # the first sample after reset refused: the start waits for the first good one
+    c_rt.reset(q0)
+    assert c_rt.step(cases[0][0], dt)[0] == 1
+    assert np.array_equal(c_rt.run(imu[:10], dt)[1], ref[:10])
+    # run() stops at the first refused sample with its code
+    c_rt.reset(q0)
+    bad = imu[:20].copy()
+    bad[7, 2] = np.nan
+    assert c_rt.run(bad, dt)[0] == 1
+    assert c_rt.reset([0.0, 0.0, 0.0, 0.0]) == 4
+    assert c_rt.reset([np.nan, 0.0, 0.0, 1.0]) == 4
+
+
+@needs_cc
+def test_flags_report_rest_and_magnetic_disturbance(built):
+    c_rt, _, _ = built["broad9"]
+    seq = simulate("static", 10.0, 100.0, seed=1, axes=9)
+    imu = _imu(seq, 9)
+    c_rt.reset(seq.quat[0])
+    flags = [c_rt.step(imu[k], 0.01)[4] for k in range(imu.shape[0])]
+    assert flags[-1] & 1  # rest detected once still long enough
+    assert flags[0] & 2   # the field is unknown (disturbed) until accepted
+    code, _, _, bias, fl = c_rt.step(np.r_[imu[-1, :6], 0.0, 0.0, 0.0], 0.01)
+    assert code == 0 and fl & 8 and np.isfinite(bias).all()
+
+
+# ------------------------------------------------------------------ refusals
+@pytest.mark.parametrize("ckpt", ["closed_loop/broad9.ckpt", "paper/broad6_open_loop.ckpt"])
+def test_non_residual_checkpoints_are_refused(tmp_path, ckpt):
+    with pytest.raises(ExportError, match="residual"):
+        export_c(CKPTS / ckpt, tmp_path, "x")
+    assert not list(tmp_path.iterdir())
+
+
+def test_name_must_be_a_c_identifier(tmp_path):
+    with pytest.raises(ExportError, match="identifier"):
+        export_c(CKPTS / "broad6.ckpt", tmp_path, "9-lives")
+
+
+# ------------------------------------------------------------------ the example
+@needs_cc
+def test_csv_example_builds_and_streams(built, tmp_path):
+    c_rt, _, paths = built["broad9"]
+    for k in ("h", "c"):
+        shutil.copy(paths[k], tmp_path)
+    exe = tmp_path / "stream"
+    cmd = [CC, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-DMODEL=broad9", '-DMODEL_HEADER="broad9.h"',
+           str(ROOT / "examples" / "c" / "stream.c"), str(tmp_path / "broad9.c"), "-I", str(tmp_path), "-o", str(exe),
+           "-lm"]
+    build = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stderr[-2000:]
+    seq = simulate("walking", 5.0, 100.0, seed=3, axes=9)
+    imu = _imu(seq, 9)
+    imu[50, 1] = np.nan  # refused, reported, and the stream goes on
+    np.savetxt(tmp_path / "imu.csv", imu, delimiter=",", fmt="%.9g", header="gx,gy,gz,ax,ay,az,mx,my,mz")
+    q0 = [repr(float(v)) for v in seq.quat[0]]
+    run = subprocess.run([str(exe), str(tmp_path / "imu.csv"), "0.01", *q0], capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "median step time" in run.stderr and "1 refused" in run.stderr
+    lines = run.stdout.strip().splitlines()
+    assert len(lines) == imu.shape[0] and lines[50] == "refused,1"
+    got = np.array([[float(v) for v in ln.split(",")] for i, ln in enumerate(lines) if i != 50])
+    c_rt.reset(seq.quat[0])
+    ref = np.stack([c_rt.step(imu[k], 0.01)[1] for k in range(imu.shape[0]) if k != 50])
+    assert np.abs(got[:, :4] - ref).max() < 1e-6
+
+
+# ------------------------------------------------------------------ the translator's subset
+TOY = '''
+import math
+from tcn_ahrs.kernels.ops import float_ops
+ops = float_ops()
+jit, where = ops.jit, ops.where
+N_OFF = 2
+HALF = 0.5
+
+@jit
+def swap(s, x, y):
+    x, y = y, x * HALF           # Python evaluates the right-hand side first
+    return x, y
+
+@jit
+def step(s, p, x):
+    a, b = swap(s, x, s[N_OFF])
+    for i in range(3):
+        s[i] = where(s[i] > a, s[i] - b, s[i] + a / 7)
+    if p[0] > 0.5:
+        s[N_OFF + 1] = math.sqrt(a * a + b ** 2) + 3 / 4
+'''
+
+
+def _toy(tmp_path, text, name):
+    import importlib.util
+
+    f = tmp_path / f"{name}.py"
+    f.write_text(text)
+    spec = importlib.util.spec_from_file_location(name, f)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@needs_cc
+def test_translator_keeps_python_semantics(tmp_path):
+    import ctypes as ct
+
+    mod = _toy(tmp_path, TOY, "toy_kernel")
+    src, sig = kernel_c(mod, "toy_", ["step"])
+    assert "const REAL *p" in sig["step"] and "REAL *ret1" in sig["swap"]
+    (tmp_path / "toy.c").write_text("#include <math.h>\n" + HELPERS + src.replace("static void toy_step", "void toy_step"))
+    lib = ct.CDLL(compile_c(tmp_path / "toy.c", tmp_path / "libtoy.so", "double", CC))
+    dbl = ct.POINTER(ct.c_double)
+    for flag in (0.0, 1.0):
+        s_py = np.array([0.3, -2.0, 1.5, 9.0])
+        s_c = s_py.copy()
+        p = np.array([flag])
+        mod.step(s_py, p, 0.7)
+        lib.toy_step(s_c.ctypes.data_as(dbl), p.ctypes.data_as(dbl), ct.c_double(0.7))
+        assert np.array_equal(s_c, s_py)
+        assert (s_py[3] != 9.0) == bool(flag)
+
+
+@pytest.mark.parametrize("body", ["    while x > 0:\n        x = x - 1\n", "    s[0] = x % 2\n",
+                                  "    s[0] = [x][0]\n", "    s[0] = x ** 3\n"])
+def test_translator_refuses_what_is_outside_the_subset(tmp_path, body):
+    text = "from tcn_ahrs.kernels.ops import float_ops\njit = float_ops().jit\n\n@jit\ndef k(s, x):\n" + body
+    mod = _toy(tmp_path, text, "bad_kernel")
+    with pytest.raises(ExportError, match="outside the kernel subset"):
+        kernel_c(mod, "b_", ["k"])
