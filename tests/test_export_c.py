@@ -1,4 +1,4 @@
-"""The C99 runtime generated from a checkpoint (tcn_ahrs.export.c_runtime): its backbone is the
+"""The C99 runtime generated from a checkpoint (tcn_ahrs.export.c): its backbone is the
 kernel's own source translated (equal to the Python kernel), the whole runtime gives what the
 numba streaming runtime gives over whole recordings, refuses bad samples before its state
 changes, and the CSV example builds and streams."""
@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from tcn_ahrs.datasets.simulate import simulate
-from tcn_ahrs.export.c_kernel import HELPERS, kernel_c
-from tcn_ahrs.export.c_runtime import CRuntime, compile_c, export_c, generate_c
+from tcn_ahrs.export.c import kernel_c
+from tcn_ahrs.export.c.runtime import template
+from tcn_ahrs.export.c import CRuntime, compile_c, export_c, generate_c
 from tcn_ahrs.export.inputs import ExportError
 from tcn_ahrs.filters import backbone as bb
 from tcn_ahrs.kernels import backbone as K
@@ -99,13 +100,13 @@ void bb_run(const double *p, double *s, const double *g, const double *a, const 
 
 @needs_cc
 def test_the_translated_backbone_equals_the_python_kernel(tmp_path):
-    """kernels/backbone.py translated to C (tcn_ahrs.export.c_kernel) steps as the kernel does
+    """kernels/backbone.py translated to C (tcn_ahrs.export.c.translate) steps as the kernel does
     (numba, float64), on every path: varying dt, trusts, rest, magnetic rejection, both
     settings of the parameter branches."""
     import ctypes as ct
 
     src, _ = kernel_c(K, "bb_", ("coefficients", "gyro_update", "acc_update", "mag_update", "quat6", "quat9"))
-    code = "#include <math.h>\n" + HELPERS + src + DRIVER % {"N_COEFF": K.N_COEFF, "S_BIAS": K.S_BIAS,
+    code = "#include <math.h>\n" + template("helpers.h.in") + src + DRIVER % {"N_COEFF": K.N_COEFF, "S_BIAS": K.S_BIAS,
                                                              "S_REST": K.S_REST, "S_MAGDIST": K.S_MAGDIST,
                                                              "S_DELTA": K.S_DELTA}
     (tmp_path / "bb.c").write_text(code)
@@ -337,7 +338,7 @@ def test_translator_keeps_python_semantics(tmp_path):
     mod = _toy(tmp_path, TOY, "toy_kernel")
     src, sig = kernel_c(mod, "toy_", ["step"])
     assert "const REAL *p" in sig["step"] and "REAL *ret1" in sig["swap"]
-    (tmp_path / "toy.c").write_text("#include <math.h>\n" + HELPERS + src.replace("static void toy_step", "void toy_step"))
+    (tmp_path / "toy.c").write_text("#include <math.h>\n" + template("helpers.h.in") + src.replace("static void toy_step", "void toy_step"))
     lib = ct.CDLL(compile_c(tmp_path / "toy.c", tmp_path / "libtoy.so", "double", CC))
     dbl = ct.POINTER(ct.c_double)
     for flag in (0.0, 1.0):
@@ -357,3 +358,26 @@ def test_translator_refuses_what_is_outside_the_subset(tmp_path, body):
     mod = _toy(tmp_path, text, "bad_kernel")
     with pytest.raises(ExportError, match="outside the kernel subset"):
         kernel_c(mod, "b_", ["k"])
+
+
+def test_export_command_writes_the_c_files_and_keeps_earlier_ones(tmp_path, capsys):
+    """``tcn-ahrs export format=c out=DIR/NAME.c``: NAME.c + NAME.h; existing files are refused
+    unless overwrite=true (nothing the user produced is overwritten); out must name the .c file."""
+    from tcn_ahrs.cli import main
+
+    out = tmp_path / "broad9.c"
+    main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={out}"])
+    assert out.is_file() and (tmp_path / "broad9.h").is_file()
+    assert "broad9_step" in (tmp_path / "broad9.h").read_text()
+    before = out.read_text()
+    out.write_text("/* mine */")
+    with pytest.raises(SystemExit) as e:
+        main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={out}"])
+    assert e.value.code == 2 and "already exist" in capsys.readouterr().err
+    assert out.read_text() == "/* mine */"
+    main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={out}", "overwrite=true"])
+    assert out.read_text() == before
+    assert not list(tmp_path.glob(".*.partial"))
+    with pytest.raises(SystemExit) as e:
+        main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={tmp_path / 'model.pt'}"])
+    assert e.value.code == 2 and "must name the C file" in capsys.readouterr().err

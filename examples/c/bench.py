@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from tcn_ahrs.checkpoint import model_from_checkpoint  # noqa: E402
 from tcn_ahrs.datasets.simulate import simulate  # noqa: E402
-from tcn_ahrs.export.c_runtime import CRuntime, compile_c, generate_c  # noqa: E402
+from tcn_ahrs.export.c import CRuntime, compile_c, generate_c  # noqa: E402
 from tcn_ahrs.streaming import BackboneStreaming  # noqa: E402
 from test_export_c import BROAD, _angle, _imu  # noqa: E402
 
@@ -46,7 +46,7 @@ def main():
     a = ap.parse_args()
     out = Path(tempfile.mkdtemp())
     import subprocess
-    import tcn_ahrs.export.c_runtime as cr
+    import tcn_ahrs.export.c.runtime as cr
 
     for name in a.ckpts:
         model = model_from_checkpoint(ROOT / "checkpoints" / f"{name}.ckpt")

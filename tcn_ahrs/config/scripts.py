@@ -104,10 +104,11 @@ class BenchmarkConfig(CompareConfig):
 
 @dataclass
 class ExportConfig:
-    """conf/export.yaml: a checkpoint as TorchScript."""
+    """conf/export.yaml: a checkpoint as a deployment file."""
     ckpt: Optional[str] = None     # checkpoint written by scripts/train.py (required)
-    out: Optional[str] = None      # output file (required)
-    mode: str = "both"             # batch | streaming | both
+    out: Optional[str] = None      # output file (required): FILE.pt (torchscript) | NAME.c (c: NAME.h beside it)
+    format: str = "torchscript"    # torchscript | c (a dependency-free C99 runtime, residual models)
+    mode: str = "both"             # batch | streaming | both (torchscript)
     rate: Optional[float] = None   # Hz, recorded when the checkpoint lacks it
     overwrite: bool = False
     net_dtype: str = "float32"     # float32 | float64

@@ -275,6 +275,18 @@ def export_main(cfg) -> Dict[str, Path]:
         raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")
     if not cfg.ckpt or not cfg.out:
         raise ValueError("export: pass ckpt=PATH (a checkpoint written by tcn-ahrs train) and out=FILE.pt")
+    fmt = str(cfg.get("format", "torchscript"))
+    if fmt == "c":
+        from .c import export_c
+
+        out = Path(str(cfg.out))
+        if out.suffix != ".c":
+            raise ValueError(f"export format=c: out={out} must name the C file, e.g. out=exports/{Path(str(cfg.ckpt)).stem}.c")
+        written = export_c(str(cfg.ckpt), out.parent, out.stem, overwrite=bool(cfg.get("overwrite", False)))
+        print(f"c: {written['c']} + {written['h']}  (C99, no dependencies; tcn_ahrs/export/c/, examples/c/)")
+        return {k: Path(v) for k, v in written.items()}
+    if fmt != "torchscript":
+        raise ValueError(f"export: format={fmt!r}: expected torchscript or c")
     written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
                                 rate_hz=None if cfg.rate is None else float(cfg.rate),
                                 net_dtype=str(cfg.net_dtype), overwrite=bool(cfg.get("overwrite", False)))

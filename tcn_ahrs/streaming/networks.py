@@ -15,27 +15,27 @@ if AVAILABLE:
     import numba
 
 # ints: header, then 8 entries per convolution layer (weights (groups, c_out, k c_in), taps oldest first), then the head's 3 offsets
-_HEADER = 8          # C, K, layers, window, use_acc, use_mag, H (features), rows of the head (C + 2)
-_PER_LAYER = 8       # groups, c_in, c_out (per group), dilation, span, weight offset, bias offset, ring offset
+LAYOUT_HEADER = 8          # C, K, layers, window, use_acc, use_mag, H (features), rows of the head (C + 2)
+LAYOUT_PER_LAYER = 8       # groups, c_in, c_out (per group), dilation, span, weight offset, bias offset, ring offset
 
 # erf(x) = x P(x²) / Q(x²) on [-4, 4] (±1 beyond), |error| < 7e-8 against math.erf (tested): the
 # rational form of Eigen's float32 erf; a polynomial and a division vectorise, a libm call does not
 # (math.erf was half of the networks' time: 288 calls per sample)
-_ERF_P = (-2.72614225801306e-10, 2.77068142495902e-08, -2.10102402082508e-06, -5.69250639462346e-05,
+ERF_P = (-2.72614225801306e-10, 2.77068142495902e-08, -2.10102402082508e-06, -5.69250639462346e-05,
           -7.34990630326855e-04, -2.95459980854025e-03, -1.60960333262415e-02)
-_ERF_Q = (-1.45660718464996e-05, -2.13374055278905e-04, -1.68282697438203e-03, -7.37332916720468e-03,
+ERF_Q = (-1.45660718464996e-05, -2.13374055278905e-04, -1.68282697438203e-03, -7.37332916720468e-03,
           -1.42647390514189e-02)
 
 
 def erf_rational(x: float) -> float:
-    """erf(x) to 7e-8 absolute (see _ERF_P)."""
+    """erf(x) to 7e-8 absolute (see ERF_P)."""
     x = min(max(x, -4.0), 4.0)
     x2 = x * x
-    p = _ERF_P[0]
-    for c in _ERF_P[1:]:
+    p = ERF_P[0]
+    for c in ERF_P[1:]:
         p = p * x2 + c
-    q = _ERF_Q[0]
-    for c in _ERF_Q[1:]:
+    q = ERF_Q[0]
+    for c in ERF_Q[1:]:
         q = q * x2 + c
     return x * p / q
 
@@ -51,7 +51,7 @@ if AVAILABLE:
         −trust logits]. fastmath (reassociation, so the dot products vectorise) is confined to
         this function; the filter code stays exact."""
         c, kk, nl, n_feat, n_head = ints[0], ints[1], ints[2], ints[6], ints[7]
-        hw, hb, hm = ints[_HEADER + _PER_LAYER * nl], ints[_HEADER + _PER_LAYER * nl + 1], ints[_HEADER + _PER_LAYER * nl + 2]
+        hw, hb, hm = ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * nl], ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * nl + 1], ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * nl + 2]
         n_in = c
         for i in range(c):
             h_in[i] = x[i]
@@ -61,7 +61,7 @@ if AVAILABLE:
                 h_in[i] = feats_k[i]
             nl_run = 0
         for li in range(nl_run):
-            base = _HEADER + _PER_LAYER * li
+            base = LAYOUT_HEADER + LAYOUT_PER_LAYER * li
             g, cin, cout, d, span = ints[base], ints[base + 1], ints[base + 2], ints[base + 3], ints[base + 4]
             wo, bo, ro = ints[base + 5], ints[base + 6], ints[base + 7]
             p = t % span
@@ -105,7 +105,7 @@ if AVAILABLE:
         outputs (float64), taps and pre-activations (float32), the head's rows."""
         width = ints[0]
         for li in range(ints[2]):
-            width = max(width, ints[_HEADER + _PER_LAYER * li] * ints[_HEADER + _PER_LAYER * li + 2])
+            width = max(width, ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * li] * ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * li + 2])
         return (np.empty(max(width, ints[6])), np.empty(max(width, ints[6])),
                 np.empty(ints[1] * width, dtype=np.float32), np.empty(width, dtype=np.float32), np.empty(ints[7]))
 

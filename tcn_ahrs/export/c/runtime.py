@@ -1,0 +1,213 @@
+"""Generate, write, compile and load the C runtime of a residual checkpoint (the package
+docstring, :mod:`tcn_ahrs.export.c`, has the API)."""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Any, Dict, Optional
+
+import numpy as np
+import torch
+from torch import nn
+
+from ...conventions import INPUT_LIMITS, MAX_DT
+from ...kernels import backbone as K
+from ..inputs import ExportError
+from .translate import kernel_c
+
+TEMPLATES = Path(__file__).resolve().parent  # model.h.in, model.c.in, helpers.h.in (package data)
+
+
+def template(name: str) -> str:
+    """A C template shipped beside this module (``model.c.in`` has the helpers written in)."""
+    text = (TEMPLATES / name).read_text()
+    return text.replace("@HELPERS@", (TEMPLATES / "helpers.h.in").read_text()) if name == "model.c.in" else text
+
+ROOTS_6 = ("coefficients", "gyro_update", "acc_update", "quat6", "qmul")
+ROOTS_9 = ROOTS_6 + ("mag_update", "quat9")
+
+
+def _f32(a) -> str:
+    """float32 values as exact C literals."""
+    a = np.asarray(a, dtype=np.float32).reshape(-1)
+    return ",\n".join(", ".join(f"{float(v):.9g}f" for v in a[i:i + 8]) for i in range(0, a.size, 8)) or "0.0f"
+
+
+def _f64(a) -> str:
+    a = np.asarray(a, dtype=np.float64).reshape(-1)
+    return ",\n".join(", ".join(repr(float(v)) for v in a[i:i + 6]) for i in range(0, a.size, 6)) or "0.0"
+
+
+def _network_arrays(model: nn.Module):
+    """The folded networks in BackboneStreaming's flat layout: (wts float32, head_w, head_b, ints)."""
+    from ..fused import fuse_residual
+    from ..open_loop import StreamingAHRS
+    from ...streaming.networks import flat_networks
+
+    fused = fuse_residual(model)
+    ts = StreamingAHRS(fused, {})
+    n_trust = 2 if int(model.axes) == 9 else 1
+    w = torch.cat([ts.out_weight_f64[0:3], fused["trust_weight"][:n_trust] * math.sqrt(0.5)], 0)
+    b = torch.cat([fused["out_bias"][0:3], fused["trust_bias"][:n_trust]])
+    m = torch.zeros(w.shape[0], int(model.axes), dtype=torch.float64)
+    wts, params, ints, rings, _, _ = flat_networks(ts, w, b, m)
+    return wts, w.numpy().copy(), b.numpy().copy(), [int(v) for v in ints], int(rings.size), n_trust
+
+
+def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
+    """The C runtime of a residual model (a :class:`~tcn_ahrs.model.ahrs.LearnedAHRS` with
+    ``loop: backbone``): {"h": header text, "c": source text, "info": sizes}."""
+    from ...streaming.networks import ERF_P, ERF_Q, LAYOUT_HEADER, LAYOUT_PER_LAYER
+
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name or ""):
+        raise ExportError(f"C export: name {name!r} is not a C identifier")
+    if getattr(model, "backbone", None) is None:
+        kind = "closed-loop" if getattr(model, "closed", None) is not None else "open-loop (paper)"
+        raise ExportError(f"C export: the model is a {kind} model; the C runtime covers the residual models "
+                          "(model.loop: backbone, checkpoints/*.ckpt) only")
+    model = model.eval()
+    cal, loop = model.calibration, model.backbone
+    c = int(model.axes)
+    use_mag = bool(loop.use_mag) and c == 9
+    wts, head_w, head_b, ints, n_ring, n_trust = _network_arrays(model)
+    kk, nl, n_feat, n_head = ints[1], ints[2], ints[6], ints[7]
+    layers = [ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * i:LAYOUT_HEADER + LAYOUT_PER_LAYER * (i + 1)] for i in range(nl)]
+    width = max([c, n_feat] + [g * cout for g, _, cout, *_ in layers] + [cin * g for g, cin, *_ in layers])
+    # weights tap-major per group, (groups, K c_in, c_out): conv_layer's layout
+    wt = wts.copy()
+    calls = []
+    for li, (g, cin, cout, d, span, wo, bo, ro) in enumerate(layers):
+        n_tap = kk * cin
+        wt[wo:wo + g * cout * n_tap] = wts[wo:wo + g * cout * n_tap].reshape(g, cout, n_tap).transpose(0, 2, 1).reshape(-1)
+        calls.append(f"    /* layer {li}: {g} group(s), {cin} -> {cout} channels, dilation {d} */\n"
+                     f"    conv_layer(st->ring + {ro}, st->pos[{li}], h, out, {g}, {cin}, {cout}, {d}, {span}, {wo}, {bo});\n"
+                     f"    st->pos[{li}] = st->pos[{li}] + 1 == {span} ? 0 : st->pos[{li}] + 1;\n"
+                     f"    for (i = 0; i < {g * cout}; i++) h[i] = out[i];")
+    wts = wt
+    up = name.upper()
+    p = list(loop.params.vector())
+    s0 = K.initial_state(loop.params)
+    bias0 = (loop.bias_prior * loop.bias_init.detach().double()).numpy()
+    kernels, _ = kernel_c(K, f"{name}_bb_", ROOTS_9 if use_mag else ROOTS_6)
+    subst = {
+        "NAME": name, "UP": up, "C": str(c), "N_STATE": str(K.N_STATE), "N_COEFF": str(K.N_COEFF),
+        "N_PARAM": str(K.N_PARAM), "N_RING": str(max(n_ring, 1)), "N_LAYERS": str(max(nl, 1)), "K": str(kk),
+        "NL": str(nl), "N_FEAT": str(n_feat), "N_HEAD": str(n_head), "N_TRUST": str(n_trust), "WIDTH": str(width),
+        "N_WTS": str(wts.size), "USE_MAG": "1" if use_mag else "0",
+        "LAYER_CALLS": "\n".join(calls),
+        "WTS": _f32(wts), "HEAD_W": _f64(head_w), "HEAD_B": _f64(head_b), "PARAMS": _f64(p), "STATE0": _f64(s0),
+        "BIAS0": _f64(bias0), "LIMITS": _f64(INPUT_LIMITS[:c]), "MAX_DT": repr(float(MAX_DT)),
+        "ERF_P": _f64(ERF_P), "ERF_Q": _f64(ERF_Q), "N_ERF_P": str(len(ERF_P)), "N_ERF_Q": str(len(ERF_Q)),
+        "GYRO_SCALE": repr(float(cal.gyro_scale)), "GYRO_CLIP": repr(float(cal.gyro_clip)),
+        "TRUST_MAX": repr(float(loop.trust_max)), "TRUST_W": repr(float(loop.trust_weight)),
+        "ACC_SCALE": repr(float(loop.acc_trust_scale)), "MAG_SCALE": repr(float(loop.mag_trust_scale)),
+        "BIAS_SCALE": repr(float(loop.bias_trust_scale)),
+        "S_GQ": str(K.S_GQ), "S_BIAS": str(K.S_BIAS), "S_REST": str(K.S_REST), "S_MAGDIST": str(K.S_MAGDIST),
+        "KERNELS": kernels,
+    }
+
+    def fill(text: str) -> str:
+        return re.sub(r"@(\w+)@", lambda mm: subst[mm.group(1)], text)
+
+    info = {"axes": c, "use_mag": use_mag, "weights_float32": int(wts.size), "head_values": int(head_w.size + head_b.size),
+            "ring_floats": n_ring, "layers": layers, "weight_bytes": int(wts.size * 4),
+            "head_bytes_double": int((head_w.size + head_b.size) * 8)}
+    return {"h": fill(template("model.h.in")), "c": fill(template("model.c.in")), "info": info}
+
+
+def export_c(ckpt_path, out_dir, prefix: Optional[str] = None, overwrite: bool = False) -> Dict[str, str]:
+    """Generate ``<prefix>.h`` and ``<prefix>.c`` (prefix: the checkpoint's stem) in ``out_dir``
+    from a residual checkpoint; closed-loop and open-loop (paper) checkpoints raise ExportError.
+    Existing files are refused unless ``overwrite``; the two are written as a set (hidden
+    temporary names, renamed together at the end: never a header of one checkpoint beside the
+    source of another)."""
+    import os
+
+    from ...checkpoint import model_from_checkpoint
+
+    name = prefix or re.sub(r"\W", "_", Path(ckpt_path).stem)
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+        raise ExportError(f"C export: name {name!r} is not a C identifier (letters, digits, _)")
+    out = Path(out_dir)
+    paths = {"h": out / f"{name}.h", "c": out / f"{name}.c"}
+    existing = [str(p_) for p_ in paths.values() if p_.exists()]
+    if existing and not overwrite:
+        raise ExportError(f"export: {', '.join(existing)} already exist(s): choose another out= or pass overwrite=true")
+    gen = generate_c(model_from_checkpoint(ckpt_path), name)
+    out.mkdir(parents=True, exist_ok=True)
+    staged = {k: p_.with_name(f".{p_.name}.partial") for k, p_ in paths.items()}
+    try:
+        for k, tmp in staged.items():
+            tmp.write_text(gen[k])
+    except BaseException:
+        for tmp in staged.values():
+            tmp.unlink(missing_ok=True)
+        raise
+    for k, tmp in staged.items():
+        os.replace(tmp, paths[k])
+    return {k: str(v) for k, v in paths.items()}
+
+
+def compile_c(c_path, out_so, real: str = "double", cc: Optional[str] = None) -> str:
+    """Build the generated source as a shared library with the system compiler (the strict
+    flags the tests use); ``real``: the backbone's scalar type. Returns the library's path."""
+    import shutil
+    import subprocess
+
+    cc = cc or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    if cc is None:
+        raise ExportError("C export: no C compiler (cc) found")
+    cmd = [cc, "-std=c99", "-pedantic", "-O2", "-Wall", "-Wextra", "-Wshadow", "-Wdouble-promotion", "-Werror",
+           "-shared", "-fPIC", f"-DTCN_AHRS_REAL={real}",
+           str(c_path), "-o", str(out_so), "-lm"]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise ExportError(f"C export: {' '.join(cmd)} failed:\n{r.stderr[-4000:]}")
+    return str(out_so)
+
+
+class CRuntime:
+    """The generated library through ctypes (tests, timing): ``reset(q0)``, ``step(sample, dt)``
+    -> (code, quat, omega, bias, flags), ``run(samples (n, C), dt)`` -> (code, out (n, 7))."""
+
+    def __init__(self, so_path, name: str, axes: int):
+        import ctypes as ct
+
+        self.ct, self.axes, self.name = ct, axes, name
+        lib = ct.CDLL(str(so_path))
+        self.lib = lib
+        f = ct.POINTER(ct.c_float)
+        lib[f"{name}_state_size"].restype = ct.c_uint32
+        self.state_size = int(lib[f"{name}_state_size"]())
+        self.state = ct.create_string_buffer(self.state_size)
+        self._reset = lib[f"{name}_reset"]
+        self._reset.argtypes = [ct.c_void_p, f]
+        self._step = lib[f"{name}_step"]
+        self._step.argtypes = [ct.c_void_p, f, ct.c_float, f, f, f, ct.POINTER(ct.c_uint32)]
+        self._run = lib[f"{name}_run"]
+        self._run.argtypes = [ct.c_void_p, f, ct.c_uint32, ct.c_float, f]
+        self._q, self._w, self._b = (np.zeros(4, np.float32), np.zeros(3, np.float32), np.zeros(3, np.float32))
+        self._flags = ct.c_uint32(0)
+
+    def _ptr(self, a):
+        return a.ctypes.data_as(self.ct.POINTER(self.ct.c_float))
+
+    def reset(self, q0) -> int:
+        q = np.ascontiguousarray(q0, dtype=np.float32)
+        return int(self._reset(self.state, self._ptr(q)))
+
+    def step(self, sample, dt: float):
+        x = np.ascontiguousarray(sample, dtype=np.float32)
+        code = int(self._step(self.state, self._ptr(x), float(dt), self._ptr(self._q), self._ptr(self._w),
+                              self._ptr(self._b), self.ct.byref(self._flags)))
+        return code, self._q.copy(), self._w.copy(), self._b.copy(), int(self._flags.value)
+
+    def run(self, samples, dt: float):
+        x = np.ascontiguousarray(samples, dtype=np.float32)
+        out = np.zeros((x.shape[0], 7), dtype=np.float32)
+        code = int(self._run(self.state, self._ptr(x), x.shape[0], float(dt), self._ptr(out)))
+        return code, out
+
+    def snapshot(self) -> bytes:
+        return self.state.raw
