@@ -75,6 +75,7 @@ def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
     subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "-q", "--target", str(site),
                     str(wheel)], check=True, capture_output=True)
     assert (site / "tcn_ahrs" / "conf" / "data" / "simulated.yaml").is_file()
+    assert (site / "tcn_ahrs" / "export" / "c" / "model.c.in").is_file()  # format=c's templates
 
     work = tmp_path / "elsewhere"
     work.mkdir()
