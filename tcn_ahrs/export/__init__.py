@@ -211,7 +211,7 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     streaming file of another). Existing files are refused unless ``overwrite``.
 
     Raises :class:`tcn_ahrs.checkpoint.CheckpointError` for a missing, corrupt or foreign file."""
-    from ..checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint
+    from ..checkpoint import checkpoint_meta, load_checkpoint
 
     if mode not in MODES:
         raise ValueError(f"export mode {mode!r}: expected one of {MODES}")
@@ -234,14 +234,7 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     folder.mkdir(parents=True, exist_ok=True)
     if not os.access(folder, os.W_OK):
         raise ExportError(f"export: cannot write into {folder} (read-only?): choose another out=")
-    model = model_from_checkpoint(ckpt_path)
-    rate = rate_hz if rate_hz is not None else ck_meta.get("rate_hz", (ck_meta.get("layout") or {}).get("rate_hz"))
-    if rate is None:
-        warnings.warn(f"{ckpt_path}: the checkpoint does not record the rate the model was trained at; "
-                      "metadata rate_hz = null (pass rate=HZ to record it)")
-    meta = {"rate_hz": None if rate is None else float(rate), "checkpoint": Path(ckpt_path).name,
-            "checkpoint_sha256": file_sha256(ckpt_path), "model_config": ck_meta.get("model"),
-            "data": ck_meta.get("data"), "rate_range_hz": (ck_meta.get("layout") or {}).get("rate_range_hz")}
+    model, meta = checkpoint_export_meta(ckpt_path, ck_meta, rate_hz)
     staged = {k: t.with_name(f".{t.name}.partial") for k, t in targets.items()}
     try:
         for kind, tmp in staged.items():
@@ -253,6 +246,22 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     for kind, tmp in staged.items():
         os.replace(tmp, targets[kind])
     return {k: str(t) for k, t in targets.items()}
+
+
+def checkpoint_export_meta(ckpt_path, ck_meta: Mapping[str, Any], rate_hz: Optional[float] = None):
+    """The checkpoint's model (eval mode) and the entries :func:`build_metadata` adds for it
+    (rate, checkpoint name and sha256, model config, data) - shared by every export format."""
+    from ..checkpoint import model_from_checkpoint
+
+    model = model_from_checkpoint(ckpt_path)
+    rate = rate_hz if rate_hz is not None else ck_meta.get("rate_hz", (ck_meta.get("layout") or {}).get("rate_hz"))
+    if rate is None:
+        warnings.warn(f"{ckpt_path}: the checkpoint does not record the rate the model was trained at; "
+                      "metadata rate_hz = null (pass rate=HZ to record it)")
+    meta = {"rate_hz": None if rate is None else float(rate), "checkpoint": Path(ckpt_path).name,
+            "checkpoint_sha256": file_sha256(ckpt_path), "model_config": ck_meta.get("model"),
+            "data": ck_meta.get("data"), "rate_range_hz": (ck_meta.get("layout") or {}).get("rate_range_hz")}
+    return model.eval(), meta
 
 
 def read_metadata(path) -> Dict[str, Any]:
