@@ -202,3 +202,21 @@ def test_other_model_kinds_are_refused(tmp_path, ckpt):
     for fn in (export_onnx, export_program):
         with pytest.raises(ExportError, match="supports the residual models"):
             fn(path, tmp_path / "x.onnx")
+
+
+def test_cli_format(tmp_path):
+    """scripts/export.py format=export writes the .pt2 graphs; an unknown format is named."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    script = str(ROOT / "scripts" / "export.py")
+    out = tmp_path / "b6.pt2"
+    res = subprocess.run([sys.executable, script, f"ckpt={CKPTS / 'broad6.ckpt'}", f"out={out}", "format=export",
+                          "mode=streaming"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert out.exists() and "streaming:" in res.stdout and read_program_metadata(out)["mode"] == "streaming"
+    res = subprocess.run([sys.executable, script, f"ckpt={CKPTS / 'broad6.ckpt'}", f"out={out}", "format=tflite"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert res.returncode != 0 and "format='tflite'" in res.stderr

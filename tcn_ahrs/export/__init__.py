@@ -1,5 +1,8 @@
 """Deployment export: self-contained TorchScript modules (batch and streaming) of a trained
-:class:`~tcn_ahrs.model.ahrs.LearnedAHRS`.
+:class:`~tcn_ahrs.model.ahrs.LearnedAHRS`. The residual models also export as ONNX
+(:func:`tcn_ahrs.export.onnx_step.export_onnx`) and as ``torch.export`` programs
+(:func:`tcn_ahrs.export.program.export_program`): a stateless step graph and a batch graph
+(:mod:`tcn_ahrs.export.stateless`; ``scripts/export.py format=onnx|export``).
 
 Contract (also in the README and saved inside every exported file as ``metadata.json`` and as
 the string returned by the module's ``metadata()`` method):
