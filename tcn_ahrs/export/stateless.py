@@ -140,7 +140,6 @@ class ResidualStep(nn.Module):
 
     def _networks(self, sample: Tensor, state: Tensor) -> Tuple[Tensor, List[Tensor]]:
         """Head output v = −[gyro net pre-tanh (3), trust logits] (float64) and the new rings."""
-        k = self.kernel_size
         ring = self._part(state, "ring0").to(self.net_dtype)
         ring = torch.cat([ring[1:], sample.to(self.net_dtype).view(1, -1)], 0)
         rings = [ring]
@@ -154,7 +153,6 @@ class ResidualStep(nn.Module):
             h = self._gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
         x = sample.to(F64)
         feats = h.reshape(-1).to(F64)
-        assert len(rings) == 1 + len(self.dilations) and taps.shape[-1] == k * ring.shape[-1]
         v = torch.addmv(torch.addmv(self.head_bias, self.head_weight, feats), self.head_matrix, x, beta=-1.0)
         return v, rings
 
