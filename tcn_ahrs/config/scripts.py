@@ -106,8 +106,8 @@ class BenchmarkConfig(CompareConfig):
 class ExportConfig:
     """conf/export.yaml: a checkpoint as a deployment file."""
     ckpt: Optional[str] = None     # checkpoint written by scripts/train.py (required)
-    out: Optional[str] = None      # output file (required): FILE.pt (torchscript) | NAME.c (c: NAME.h beside it)
-    format: str = "torchscript"    # torchscript | c (a dependency-free C99 runtime, residual models)
+    out: Optional[str] = None      # output file (required): FILE.pt | FILE.onnx | FILE.pt2 | NAME.c (+ NAME.h)
+    format: str = "torchscript"    # torchscript | onnx | export (torch.export) | c (C99): the last three residual models only
     mode: str = "both"             # batch | streaming | both (torchscript)
     rate: Optional[float] = None   # Hz, recorded when the checkpoint lacks it
     overwrite: bool = False

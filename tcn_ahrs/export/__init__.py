@@ -1,5 +1,8 @@
 """Deployment export: self-contained TorchScript modules (batch and streaming) of a trained
-:class:`~tcn_ahrs.model.ahrs.LearnedAHRS`.
+:class:`~tcn_ahrs.model.ahrs.LearnedAHRS`. The residual models also export as ONNX
+(:func:`tcn_ahrs.export.onnx_step.export_onnx`) and as ``torch.export`` programs
+(:func:`tcn_ahrs.export.program.export_program`): a stateless step graph and a batch graph
+(:mod:`tcn_ahrs.export.stateless`; ``scripts/export.py format=onnx|export``).
 
 Contract (also in the README and saved inside every exported file as ``metadata.json`` and as
 the string returned by the module's ``metadata()`` method):
@@ -211,7 +214,7 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     streaming file of another). Existing files are refused unless ``overwrite``.
 
     Raises :class:`tcn_ahrs.checkpoint.CheckpointError` for a missing, corrupt or foreign file."""
-    from ..checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint
+    from ..checkpoint import checkpoint_meta, load_checkpoint
 
     if mode not in MODES:
         raise ValueError(f"export mode {mode!r}: expected one of {MODES}")
@@ -234,14 +237,7 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     folder.mkdir(parents=True, exist_ok=True)
     if not os.access(folder, os.W_OK):
         raise ExportError(f"export: cannot write into {folder} (read-only?): choose another out=")
-    model = model_from_checkpoint(ckpt_path)
-    rate = rate_hz if rate_hz is not None else ck_meta.get("rate_hz", (ck_meta.get("layout") or {}).get("rate_hz"))
-    if rate is None:
-        warnings.warn(f"{ckpt_path}: the checkpoint does not record the rate the model was trained at; "
-                      "metadata rate_hz = null (pass rate=HZ to record it)")
-    meta = {"rate_hz": None if rate is None else float(rate), "checkpoint": Path(ckpt_path).name,
-            "checkpoint_sha256": file_sha256(ckpt_path), "model_config": ck_meta.get("model"),
-            "data": ck_meta.get("data"), "rate_range_hz": (ck_meta.get("layout") or {}).get("rate_range_hz")}
+    model, meta = checkpoint_export_meta(ckpt_path, ck_meta, rate_hz)
     staged = {k: t.with_name(f".{t.name}.partial") for k, t in targets.items()}
     try:
         for kind, tmp in staged.items():
@@ -255,6 +251,22 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     return {k: str(t) for k, t in targets.items()}
 
 
+def checkpoint_export_meta(ckpt_path, ck_meta: Mapping[str, Any], rate_hz: Optional[float] = None):
+    """The checkpoint's model (eval mode) and the entries :func:`build_metadata` adds for it
+    (rate, checkpoint name and sha256, model config, data) - shared by every export format."""
+    from ..checkpoint import model_from_checkpoint
+
+    model = model_from_checkpoint(ckpt_path)
+    rate = rate_hz if rate_hz is not None else ck_meta.get("rate_hz", (ck_meta.get("layout") or {}).get("rate_hz"))
+    if rate is None:
+        warnings.warn(f"{ckpt_path}: the checkpoint does not record the rate the model was trained at; "
+                      "metadata rate_hz = null (pass rate=HZ to record it)")
+    meta = {"rate_hz": None if rate is None else float(rate), "checkpoint": Path(ckpt_path).name,
+            "checkpoint_sha256": file_sha256(ckpt_path), "model_config": ck_meta.get("model"),
+            "data": ck_meta.get("data"), "rate_range_hz": (ck_meta.get("layout") or {}).get("rate_range_hz")}
+    return model.eval(), meta
+
+
 def read_metadata(path) -> Dict[str, Any]:
     """The ``metadata.json`` of an exported file (only torch needed)."""
     extra = {"metadata.json": ""}
@@ -264,9 +276,12 @@ def read_metadata(path) -> Dict[str, Any]:
 
 
 
+FORMATS = ("torchscript", "onnx", "export", "c")
+
+
 def export_main(cfg) -> Dict[str, Path]:
-    """``tcn-ahrs export ckpt=PATH out=FILE.pt [mode=batch|streaming|both] [rate=HZ]``
-    (``tcn_ahrs/conf/export.yaml``): writes the files and prints one line per file from its metadata."""
+    """``tcn-ahrs export ckpt=PATH out=FILE [format=torchscript|onnx|export|c] [mode=batch|streaming|both]
+    [rate=HZ]`` (``tcn_ahrs/conf/export.yaml``): writes the files and prints one line per file."""
     from ..config import ExportConfig, keys
 
     KEYS = keys(ExportConfig)  # tcn_ahrs/conf/export.yaml's keys: tcn_ahrs/config/scripts.py
@@ -276,6 +291,8 @@ def export_main(cfg) -> Dict[str, Path]:
     if not cfg.ckpt or not cfg.out:
         raise ValueError("export: pass ckpt=PATH (a checkpoint written by tcn-ahrs train) and out=FILE.pt")
     fmt = str(cfg.get("format", "torchscript"))
+    if fmt not in FORMATS:
+        raise ValueError(f"export: format={fmt!r}: expected one of {FORMATS}")
     if fmt == "c":
         from .c import export_c
 
@@ -285,15 +302,29 @@ def export_main(cfg) -> Dict[str, Path]:
         written = export_c(str(cfg.ckpt), out.parent, out.stem, overwrite=bool(cfg.get("overwrite", False)))
         print(f"c: {written['c']} + {written['h']}  (C99, no dependencies; tcn_ahrs/export/c/, examples/c/)")
         return {k: Path(v) for k, v in written.items()}
+    rate = None if cfg.rate is None else float(cfg.rate)
+    overwrite = bool(cfg.get("overwrite", False))
     if fmt != "torchscript":
-        raise ValueError(f"export: format={fmt!r}: expected torchscript or c")
-    written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode),
-                                rate_hz=None if cfg.rate is None else float(cfg.rate),
-                                net_dtype=str(cfg.net_dtype), overwrite=bool(cfg.get("overwrite", False)))
+        if str(cfg.net_dtype) != "float32":
+            raise ValueError(f"export: format={fmt} runs the networks in float32 (net_dtype=float32)")
+        if fmt == "onnx":
+            from .onnx_step import export_onnx as export_fn, read_onnx_metadata as read_format_metadata
+        else:
+            from .program import export_program as export_fn, read_program_metadata as read_format_metadata
+        written = export_fn(str(cfg.ckpt), str(cfg.out), str(cfg.mode), rate_hz=rate, overwrite=overwrite)
+        _print_written(written, read_format_metadata)
+        return {k: Path(v) for k, v in written.items()}
+    written = export_checkpoint(str(cfg.ckpt), str(cfg.out), str(cfg.mode), rate_hz=rate,
+                                net_dtype=str(cfg.net_dtype), overwrite=overwrite)
+    _print_written(written, read_metadata)
+    return written
+
+
+def _print_written(written: Mapping[str, Any], read) -> None:
+    """One line per written file from its own metadata."""
     for mode, path in written.items():
-        md = read_metadata(path)
+        md = read(path)
         rate = "{:g}-{:g}".format(*md["rate_range_hz"]) if md.get("rate_range_hz") else md["rate_hz"]
         print(f"{mode}: {path}  ({md['variant']}, {md['axes']}-axis, preintegration {md['preintegration']}, "
               f"receptive field {md['receptive_field']}, rate {rate} Hz, "
               f"checkpoint sha256 {md['checkpoint_sha256'][:12]}...)")
-    return written

@@ -80,6 +80,8 @@ def torch_ops() -> SimpleNamespace:
     import torch
 
     def fmax(a, b):
+        if not isinstance(a, torch.Tensor) and not isinstance(b, torch.Tensor):
+            return max(a, b)  # two constants (parameters): a float64 float, as the float table
         return torch.maximum(torch.as_tensor(a), torch.as_tensor(b))
 
     def asin(x):  # only reached under nograd (the dip angle): clamp for round-off past ±1

@@ -1,0 +1,443 @@
+"""The residual model's streaming step as a *stateless* graph: ``sample, dt, state -> quat, omega,
+state'`` (what ONNX and ``torch.export`` can hold: no attributes mutated, no Python state, no
+exceptions), and the small Python loop that carries the state between calls.
+
+Built from a :class:`~tcn_ahrs.export.backbone.ResidualStreaming` (its fused float32 weights, its
+head rows, its knobs) and the backbone kernel :mod:`tcn_ahrs.kernels.backbone` read with torch
+tensors (:func:`tcn_ahrs.kernels.ops.load_kernel`: the same source the numba and TorchScript
+runtimes compile; nothing of the filter is restated here). What this module writes itself is the
+glue of ``ResidualStreaming._filter`` in tensor form (the trusts, the clipped gyro residual, the
+skipped zero accelerometer/magnetometer samples, the magnetic frame of the first sample) because
+that method branches on Python floats; tests/test_export_formats.py holds the numbers equal.
+
+State: one flat float64 vector (:attr:`ResidualStep.layout`: name -> (offset, shape)), zeros
+except what :meth:`ResidualStep.initial_state` writes (``reset(q0)``)::
+
+    t        (1,)              samples since reset (0: the next sample starts the backbone)
+    q0       (4,)              the attitude given to reset (w, x, y, z, nav_from_body, ENU)
+    m_conj   (4,)              9 axes: the magnetic frame's conjugate (set at the first sample)
+    backbone (N_STATE,)        the backbone's state (kernels/backbone_layout.STATE)
+    ring0    (span0, C)        the first layer's ring buffer (raw samples; float32 values)
+    ring<i>  (G, span_i, C_i)  hidden layer i's ring buffer (float32 values)
+
+The ring buffers are time-major and shifted by one row per sample (oldest row first), so the
+``kernel`` taps of the newest sample are rows ``0, d, 2d, ...``: the same weights and the same
+products as ``ResidualStreaming``'s phase-indexed rings, without a data-dependent index. The
+backbone's coefficients are recomputed from ``dt`` at every step (the TorchScript and numba
+runtimes cache them while dt repeats: the same numbers).
+
+ONNX Runtime has no float64 Tan, Atan or Asin kernel: :func:`onnx_ops` is the torch table with
+``tan = sin / cos`` and ``atan2`` as a float32 estimate refined by one float64 step (exact to
+float64 round-off), ``asin`` through it; the graph stays float64 outside the networks.
+"""
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+from typing import Dict, List, Optional, Tuple
+
+import torch
+from torch import Tensor, nn
+
+from ..kernels import backbone as K
+from ..conventions import INPUT_LIMITS, MAX_DT
+from ..kernels.ops import load_kernel, torch_ops
+
+F64 = torch.float64
+
+
+def onnx_ops() -> SimpleNamespace:
+    """The torch ops table with float64 tan/atan2/asin built from ops ONNX Runtime runs in
+    float64 (see the module docstring)."""
+    base = vars(torch_ops()).copy()
+
+    def tan(x):
+        return torch.sin(x) / torch.cos(x)
+
+    def atan2(y, x):
+        y, x = torch.as_tensor(y, dtype=F64), torch.as_tensor(x, dtype=F64)
+        a0 = torch.atan2(y.float(), x.float()).double()  # within ~1e-7 rad
+        c0, s0 = torch.cos(a0), torch.sin(a0)
+        num = y * c0 - x * s0        # r sin(a − a0)
+        den = x * c0 + y * s0        # r cos(a − a0) > 0 near a0
+        e = num / torch.where(den > 0.0, den, torch.ones_like(den))
+        e = torch.where(den > 0.0, e - e * e * e / 3.0, torch.zeros_like(e))  # atan(e), |e| ~ 1e-7
+        return a0 + e
+
+    def asin(x):  # only under nograd (the dip angle), as the torch table: clamped to ±1
+        x = torch.clamp(x, -1.0, 1.0)
+        return atan2(x, torch.sqrt(torch.clamp(1.0 - x * x, min=0.0)))
+
+    base.update(name="torch_onnx", tan=tan, atan2=atan2, asin=asin)
+    return SimpleNamespace(**base)
+
+
+class ResidualStep(nn.Module):
+    """``quat (4,), omega (3,), state' (S,) = forward(sample (C,), dt (), state (S,))``, float64
+    in and out (the networks in float32 inside). ``rs``: a :class:`ResidualStreaming` (its
+    weights are copied). ``onnx``: build with :func:`onnx_ops` (float64 tan/atan2 for ONNX
+    Runtime); else the plain torch table.
+
+    No input checks (a graph cannot raise): :class:`StatefulLoop` checks before it runs it."""
+
+    def __init__(self, rs: nn.Module, onnx: bool = False):
+        super().__init__()
+        self.T = load_kernel(K, onnx_ops() if onnx else torch_ops())
+        self.axes = c = int(rs.axes)
+        self.groups = g = int(rs.groups)
+        self.kernel_size = k = int(rs.kernel_size)
+        self.first_dilation = int(rs.first_dilation)
+        self.dilations = [int(d) for d in rs.hidden_dilations]
+        self.register_buffer("first_weight_t", rs.first_weight_t.detach().clone())
+        self.register_buffer("first_bias_step", rs.first_bias_step.detach().clone())
+        self.step_weights = nn.ParameterList([nn.Parameter(w.detach().clone(), requires_grad=False)
+                                              for w in rs.step_weights])
+        self.step_biases = nn.ParameterList([nn.Parameter(b.detach().clone(), requires_grad=False)
+                                             for b in rs.step_biases])
+        for name in ("head_weight", "head_bias", "head_matrix"):
+            self.register_buffer(name, getattr(rs, name).detach().clone())
+        self.register_buffer("input_mean", rs.input_mean.detach().clone())
+        self.net_dtype = rs.first_weight_t.dtype
+        self.n_trust = int(rs.n_trust)
+        self.use_mag = bool(rs.use_backbone_mag)
+        self.gyro_scale, self.gyro_clip = float(rs.gyro_scale), float(rs.gyro_clip)
+        self.trust_max, self.trust_weight = float(rs.trust_max), float(rs.trust_weight_knob)
+        self.trust_scales = [float(v) for v in rs.trust_scales]
+        self.params = [float(v) for v in rs.params]
+        self.register_buffer("initial_backbone", torch.tensor(rs.initial_state, dtype=F64))
+        self.register_buffer("bias0", torch.tensor(rs.bias0, dtype=F64))
+        # the state layout
+        shapes: List[Tuple[str, Tuple[int, ...]]] = [("t", (1,)), ("q0", (4,)), ("m_conj", (4,)),
+                                                     ("backbone", (K.N_STATE,)), ("ring0", (int(rs.first_span), c))]
+        for i, (span, w) in enumerate(zip(rs.spans, rs.step_weights)):
+            shapes.append((f"ring{i + 1}", (g, int(span), int(w.shape[1]) // k)))
+        self.layout: Dict[str, Tuple[int, Tuple[int, ...]]] = {}
+        off = 0
+        for name, shape in shapes:
+            self.layout[name] = (off, shape)
+            off += int(math.prod(shape))
+        self.state_size = off
+
+    # ---------------------------------------------------------------- state
+    def _part(self, state: Tensor, name: str) -> Tensor:
+        off, shape = self.layout[name]
+        return state[off:off + int(math.prod(shape))].reshape(shape)
+
+    def initial_state(self, q0: Tensor) -> Tensor:
+        """The state after ``reset(q0)`` (q0 normalised): the rings at the batch model's causal
+        zero padding (the first one at the input mean, folded into its weights). Traceable (the
+        batch graph builds it from its q0 input)."""
+        q = q0.to(F64).reshape(4)
+        span, c = self.layout["ring0"][1]
+        ring0 = self.input_mean.to(self.net_dtype).to(F64).reshape(1, c).expand(span, c).reshape(-1)
+        head = torch.cat([torch.zeros(1, dtype=F64), q / torch.sqrt((q * q).sum()),
+                          torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64), torch.zeros(K.N_STATE, dtype=F64), ring0])
+        return torch.cat([head, torch.zeros(self.state_size - head.shape[0], dtype=F64)])
+
+    # ---------------------------------------------------------------- networks
+    def _gelu_scaled(self, u: Tensor) -> Tensor:  # = StreamingAHRS._gelu_scaled
+        return torch.addcmul(u, u, torch.erf(u))
+
+    def _networks(self, sample: Tensor, state: Tensor) -> Tuple[Tensor, List[Tensor]]:
+        """Head output v = −[gyro net pre-tanh (3), trust logits] (float64) and the new rings."""
+        ring = self._part(state, "ring0").to(self.net_dtype)
+        ring = torch.cat([ring[1:], sample.to(self.net_dtype).view(1, -1)], 0)
+        rings = [ring]
+        taps = ring[0::self.first_dilation].reshape(1, -1)
+        h = self._gelu_scaled(torch.addmm(self.first_bias_step, taps, self.first_weight_t)).view(self.groups, 1, -1)
+        for i in range(len(self.dilations)):
+            ring = self._part(state, f"ring{i + 1}").to(self.net_dtype)
+            ring = torch.cat([ring[:, 1:], h], 1)
+            rings.append(ring)
+            taps = ring[:, 0::self.dilations[i]].reshape(self.groups, 1, -1)
+            h = self._gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
+        x = sample.to(F64)
+        feats = h.reshape(-1).to(F64)
+        v = torch.addmv(torch.addmv(self.head_bias, self.head_weight, feats), self.head_matrix, x, beta=-1.0)
+        return v, rings
+
+    # ---------------------------------------------------------------- step
+    def forward(self, sample: Tensor, dt: Tensor, state: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
+        T = self.T
+        x = sample.to(F64)
+        dt = dt.to(F64).reshape(())
+        v, rings = self._networks(sample, state)
+        # trusts and gyro residual (ResidualStreaming._filter)
+        trusts: List[Tensor] = [torch.full((), s, dtype=F64) for s in self.trust_scales]
+        for j in range(self.n_trust):
+            tr = torch.clamp(2.0 / (1.0 + torch.exp(v[3 + j])), max=self.trust_max)
+            trusts[j] = self.trust_scales[j] * (1.0 + self.trust_weight * (tr - 1.0))
+        lim = self.gyro_clip
+        g = x[0:3] - torch.clamp(self.gyro_scale * torch.tanh(-v[0:3]), -lim, lim)
+        # the backbone's start at the first sample after reset (ResidualStreaming._start)
+        t = self._part(state, "t")[0]
+        first = t < 0.5
+        q = list(self._part(state, "q0").unbind(0))
+        m_conj = list(self._part(state, "m_conj").unbind(0))
+        if self.use_mag:
+            v0, v1, _ = T.qrot(q[0], q[1], q[2], q[3], x[6], x[7], x[8])
+            hh = 0.5 * (0.5 * math.pi - T.atan2(v1, v0))
+            ch, sh = torch.cos(hh), torch.sin(hh)
+            zero = 0.0 * ch
+            q = list(T.qmul(ch, zero, zero, sh, q[0], q[1], q[2], q[3]))
+            start_conj = [ch, zero, zero, -sh]
+            m_conj = [torch.where(first, a, b) for a, b in zip(start_conj, m_conj)]
+        qs = torch.stack(q)
+        qs = qs / torch.sqrt((qs * qs).sum())
+        init = torch.cat([self.initial_backbone[:K.S_GQ], qs, self.initial_backbone[K.S_GQ + 4:K.S_BIAS],
+                          self.bias0, self.initial_backbone[K.S_BIAS + 3:]])
+        s = list(torch.where(first, init, self._part(state, "backbone")).unbind(0))
+        # one backbone step (the kernel, torch reading)
+        p = self.params
+        c: List = [None] * K.N_COEFF
+        T.coefficients(p, dt, c)
+        T.gyro_update(s, p, c, g[0], g[1], g[2])
+        old = list(s)
+        T.acc_update(s, p, c, x[3], x[4], x[5], trusts[0], trusts[2])
+        skip = (x[3] == 0.0) & (x[4] == 0.0) & (x[5] == 0.0)  # the batch loop skips [0 0 0], as VQF
+        s = [a if a is b else torch.where(skip, b, a) for a, b in zip(s, old)]
+        if self.use_mag:
+            old = list(s)
+            T.mag_update(s, p, c, x[6], x[7], x[8], trusts[1])
+            skip = (x[6] == 0.0) & (x[7] == 0.0) & (x[8] == 0.0)
+            s = [a if a is b else torch.where(skip, b, a) for a, b in zip(s, old)]
+            w, qx, qy, qz = T.quat9(s)
+        else:
+            w, qx, qy, qz = T.quat6(s)
+        out = torch.stack(list(T.qmul(m_conj[0], m_conj[1], m_conj[2], m_conj[3], w, qx, qy, qz)))
+        out = torch.where(out[0] < 0.0, -out, out)  # w >= 0 representative
+        bias = torch.stack([s[K.S_BIAS], s[K.S_BIAS + 1], s[K.S_BIAS + 2]])
+        omega = g - bias
+        new_state = torch.cat([(t + 1.0).reshape(1), self._part(state, "q0"), torch.stack(m_conj),
+                               torch.stack([torch.as_tensor(e, dtype=F64) for e in s])]
+                              + [r.to(F64).reshape(-1) for r in rings])
+        return out, omega, new_state
+
+
+class ResidualScan(nn.Module):
+    """The batch model as one graph: ``quat (N, 4), omega (N, 3) = forward(imu (N, C), dt (N,),
+    q0 (4,))``, float64: :class:`ResidualStep` scanned over the samples from the state of
+    ``reset(q0)`` (``torch._higher_order_ops.scan``: ONNX ``Scan``, a ``scan`` node in
+    torch.export; N is dynamic). No input checks inside (the loader's)."""
+
+    def __init__(self, step: ResidualStep):
+        super().__init__()
+        self.step = step
+
+    def forward(self, imu: Tensor, dt: Tensor, q0: Tensor) -> Tuple[Tensor, Tensor]:
+        from torch._higher_order_ops.scan import scan
+
+        def body(state: Tensor, xs: Tuple[Tensor, Tensor]):
+            q, w, state = self.step(xs[0], xs[1], state)
+            return state, torch.cat([q, w])
+
+        _, out = scan(body, self.step.initial_state(q0), (imu.to(F64), dt.to(F64)))
+        return out[:, 0:4], out[:, 4:7]
+
+
+# ============================================================== the state between calls
+def state_spec(step: ResidualStep) -> Dict[str, object]:
+    """The state's description for the metadata (JSON): its size, its layout (name -> [offset,
+    shape]) and what :meth:`ResidualStep.initial_state` writes besides q0 (``m_conj`` = identity,
+    every row of ``ring0`` = the input mean the first layer's weights subtract), so that a loader
+    without torch builds the state of ``reset(q0)``."""
+    row = step.input_mean.to(step.net_dtype).to(F64).tolist()
+    return {"size": int(step.state_size), "dtype": "float64",
+            "layout": {k: [int(o), [int(v) for v in s]] for k, (o, s) in step.layout.items()},
+            "init": {"m_conj": [1.0, 0.0, 0.0, 0.0], "ring0_row": [float(v) for v in row]}}
+
+
+def initial_state(spec: Dict, q0):
+    """The state after ``reset(q0)`` (numpy, float64) from :func:`state_spec`'s description; q0
+    (4,) already checked and normalised."""
+    import numpy as np
+
+    s = np.zeros(int(spec["size"]), dtype=np.float64)
+    lay = spec["layout"]
+    s[lay["q0"][0]:lay["q0"][0] + 4] = np.asarray(q0, dtype=np.float64).reshape(4)
+    s[lay["m_conj"][0]:lay["m_conj"][0] + 4] = spec["init"]["m_conj"]
+    off, (span, c) = lay["ring0"]
+    s[off:off + span * c] = np.tile(np.asarray(spec["init"]["ring0_row"], dtype=np.float64), span)
+    return s
+
+
+class StatefulLoop:
+    """The streaming contract around a stateless step graph (ONNX or torch.export): the state
+    lives here, in numpy, and the inputs are checked *before* the graph runs (a graph cannot
+    raise), so a refused sample leaves the state as it was (:mod:`tcn_ahrs.streaming.inputs`:
+    the same checks and messages as :class:`~tcn_ahrs.streaming.BackboneStreaming`).
+
+    ``reset(q0)``; ``step(sample (C,), dt)`` -> quat (4,), omega (3,) float64 numpy (the dt of the
+    first sample after reset IS used, as the batch model); ``step_chunk(samples (k, C), dt)`` and
+    ``run(imu (N, C), dt, q0)`` (= the batch model: reset + the step graph scanned here) ->
+    (k, 4), (k, 3). Subclasses set ``metadata`` (dict) and implement ``_run_graph(x, dt, state)``
+    -> (quat, omega, state')."""
+
+    metadata: Dict
+
+    def _setup(self, metadata: Dict) -> None:
+        import numpy as np
+
+        self.metadata = metadata
+        self.axes = int(metadata["axes"])
+        self.spec = metadata["state"]
+        self._dt1 = np.zeros(1)
+        self.reset(np.array([1.0, 0.0, 0.0, 0.0]))
+
+    def _check(self, xs, dts) -> None:
+        from ..streaming.inputs import _check_samples
+
+        _check_samples(xs, dts)
+
+    def reset(self, q0) -> None:
+        """Start a new recording at attitude q0 (w, x, y, z), nav_from_body, ENU."""
+        from ..streaming.inputs import check_quat0
+
+        self.state = initial_state(self.spec, check_quat0(q0).numpy())
+
+    def step(self, sample, dt: float):
+        """One sample (C,) -> (quat (4,), omega (3,)); ValueError before any state change."""
+        from ..streaming.inputs import _one_sample
+
+        x = _one_sample(self, sample, dt)
+        q, w, self.state = self._run_graph(x[0], float(self._dt1[0]), self.state)
+        return q, w
+
+    def step_chunk(self, samples, dt):
+        """k samples (k, C), dt float or (k,) -> (quat (k, 4), omega (k, 3)): k steps."""
+        import numpy as np
+
+        from ..streaming.inputs import _chunk
+
+        xs, dts = _chunk(self, samples, dt)
+        quat, omega = np.empty((len(xs), 4)), np.empty((len(xs), 3))
+        state = self.state
+        for k in range(len(xs)):
+            quat[k], omega[k], state = self._run_graph(xs[k], float(dts[k]), state)
+        self.state = state
+        return quat, omega
+
+    def run(self, imu, dt, q0):
+        """reset(q0), then imu (N, C) -> quat (N, 4), omega (N, 3): the batch model (every input
+        checked before the state is reset)."""
+        import numpy as np
+
+        from ..streaming.inputs import _chunk, check_quat0
+
+        xs, dts = _chunk(self, imu, dt)
+        check_quat0(q0)
+        self.reset(q0)
+        return self.step_chunk(xs, dts) if len(xs) else (np.zeros((0, 4)), np.zeros((0, 3)))
+
+
+# ============================================================== export preparation
+SUPPORTED = ("the residual models (model.loop: backbone): the shipped checkpoints/*.ckpt "
+             "(broad9, broad6, euroc6, tumvi6, oxiod9, general6, general9)")
+
+
+def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None, overwrite: bool = False,
+            onnx: bool = False):
+    """Load ``ckpt_path`` for a stateless-step export: checks (existing targets, writable folder,
+    a residual model) -> (the :class:`ResidualStep`, the metadata dict). ``fmt``: the format's
+    name in the metadata and the messages."""
+    import os
+    from pathlib import Path
+
+    from ..checkpoint import checkpoint_meta, load_checkpoint
+    from . import build_metadata, checkpoint_export_meta
+    from .backbone import ResidualStreaming
+    from .inputs import ExportError
+
+    ck_meta = checkpoint_meta(load_checkpoint(ckpt_path), ckpt_path)  # a missing checkpoint is named first
+    existing = [str(t) for t in targets if Path(t).exists()]
+    if existing and not overwrite:
+        raise ExportError(f"export: {', '.join(existing)} already exist(s): choose another out= or pass overwrite=true")
+    for t in targets:
+        folder = Path(t).parent
+        folder.mkdir(parents=True, exist_ok=True)
+        if not os.access(folder, os.W_OK):
+            raise ExportError(f"export: cannot write into {folder} (read-only?): choose another out=")
+    model, meta = checkpoint_export_meta(ckpt_path, ck_meta, rate_hz)
+    if getattr(model, "backbone", None) is None:
+        kind = "closed-loop" if getattr(model, "closed", None) is not None else "open-loop (paper)"
+        raise ExportError(f"format={fmt} supports {SUPPORTED}; {ckpt_path} is a {kind} model: "
+                          "export it with format=torchscript")
+    md = build_metadata(model, "step", meta)
+    with torch.no_grad():
+        step = ResidualStep(ResidualStreaming(model, md), onnx=onnx).eval()
+    md.update({
+        "format": f"tcn-ahrs {fmt} export (stateless step)",
+        "mode": "step",
+        "api": {"step": "quat (4,), omega (3,), state_out (S,) = step(sample (C,) float64, dt () float64 [s], "
+                        "state (S,) float64)  (dt used on every call, also the first after reset)",
+                "reset": "state = zeros(S); state[q0] = q0 / |q0|; state[m_conj] = state.init.m_conj; every row of "
+                         "state[ring0] = state.init.ring0_row  (tcn_ahrs.export.stateless.initial_state)",
+                "batch": "quat (N,4), omega (N,3) = reset(q0) + the step over the N samples (the loader's run)",
+                "checks": "none inside the graph: the loader refuses a non-finite or out-of-range sample or a dt "
+                          "not in (0, max_dt] before running it (state unchanged)"},
+        "state": state_spec(step),
+        "max_dt": float(MAX_DT),
+        "input_limits": [float(v) for v in INPUT_LIMITS],
+    })
+    return step, md
+
+
+def example_inputs(step: ResidualStep) -> Tuple[Tensor, Tensor, Tensor]:
+    """(sample, dt, state) to trace the step with: a level sensor at rest after reset."""
+    x = torch.zeros(step.axes, dtype=F64)
+    x[5] = 9.81
+    if step.axes == 9:
+        x[7], x[8] = 20.0, -40.0
+    return x, torch.tensor(0.01, dtype=F64), step.initial_state(torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64))
+
+
+def staged_write(path, write) -> str:
+    """``write(tmp)`` to a hidden temporary name beside ``path``, then renamed into place (a
+    failed export leaves nothing)."""
+    from pathlib import Path
+
+    from .inputs import ExportError
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")  # torch.export.save wants .pt2
+    try:
+        write(tmp)
+        tmp.replace(path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise ExportError(f"export: cannot write {path}: {e}") from None
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return str(path)
+
+
+class CheckedBatch:
+    """The batch contract around a :class:`ResidualScan` graph: ``run(imu (N, C), dt float | (N,),
+    q0 (4,))`` (also ``__call__``) -> quat (N, 4), omega (N, 3) float64 numpy, every input checked
+    first (the same checks as the streaming loaders). Subclasses set ``metadata`` and implement
+    ``_run_graph(imu, dt, q0)``."""
+
+    metadata: Dict
+
+    def _setup(self, metadata: Dict) -> None:
+        self.metadata = metadata
+        self.axes = int(metadata["axes"])
+
+    def _check(self, xs, dts) -> None:
+        from ..streaming.inputs import _check_samples
+
+        _check_samples(xs, dts)
+
+    def run(self, imu, dt, q0):
+        import numpy as np
+
+        from ..streaming.inputs import _chunk, check_quat0
+
+        xs, dts = _chunk(self, imu, dt)
+        q = check_quat0(q0).numpy()
+        if len(xs) == 0:
+            return np.zeros((0, 4)), np.zeros((0, 3))
+        return self._run_graph(xs, dts, q)
+
+    __call__ = run
