@@ -141,3 +141,29 @@ def test_no_module_over_the_line_limit(path):
 def test_the_allow_list_names_existing_files():
     for rel in OVER_LIMIT:
         assert (PACKAGE.parent / rel).is_file(), f"{rel} is gone: remove it from OVER_LIMIT in tests/test_layers.py"
+
+
+def test_every_imported_name_exists():
+    """Each ``from tcn_ahrs... import name`` of the package, function-local ones included, names
+    something its module has (a renamed or moved name cannot hide in a rarely run function)."""
+    import importlib
+
+    missing = []
+    for path in _sources():
+        module = _module_name(path)
+        package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            if node.level:
+                base = package.split(".")
+                target = ".".join(base[:len(base) - (node.level - 1)] + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if target.split(".")[0] != "tcn_ahrs":
+                continue
+            imported = importlib.import_module(target)
+            for a in node.names:
+                if a.name != "*" and not hasattr(imported, a.name) and not _is_module(f"{target}.{a.name}"):
+                    missing.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno}: {target} has no {a.name!r}")
+    assert not missing, "\n".join(sorted(missing))

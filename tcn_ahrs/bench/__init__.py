@@ -77,6 +77,10 @@ def main(cfg: Optional[Mapping[str, Any]] = None) -> Dict[str, Any]:
                 res["streaming"] = bench_streaming(p["streaming"], seed)
             elif section == "filters":
                 res["filters"] = bench_filters(p["filters"], device, seed)
+            elif section == "deploy":
+                from .deploy import bench_deploy
+
+                res["deploy"] = bench_deploy(p["deploy"], seed)
             res.setdefault("section_s", {})[section] = time.perf_counter() - ts
     res["environment"]["loadavg_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     res["total_s"] = time.perf_counter() - t0

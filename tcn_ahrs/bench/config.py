@@ -31,6 +31,9 @@ def _merge(base: Dict[str, Any], over: Mapping[str, Any], where: str = "speed") 
     return out
 
 
+SECTIONS = ("train", "inference", "streaming", "filters", "deploy")
+
+
 def resolve_config(cfg: Optional[Mapping[str, Any]] = None) -> Dict[str, Any]:
     """Benchmark config (top-level ``device``, ``out``, ``quick`` + a ``speed:`` section) ->
     the full parameter dict (``DEFAULTS``, then ``QUICK`` when quick, then the user's keys)."""
@@ -52,10 +55,10 @@ def resolve_config(cfg: Optional[Mapping[str, Any]] = None) -> Dict[str, Any]:
     p["quick"] = quick
     p["device"] = str(top["device"] or "cpu")
     p["out"] = top["out"]
-    bad = set(p["sections"]) - {"train", "inference", "streaming", "filters"}
+    bad = set(p["sections"]) - set(SECTIONS)
     if bad:
         raise ValueError(f"benchmark config: speed.sections: unknown {sorted(bad)}; "
-                         "expected a subset of [train, inference, streaming, filters]")
+                         f"expected a subset of [{', '.join(SECTIONS)}]")
     if p["device"] not in ("cpu", "cuda"):
         raise ValueError(f"benchmark config: device={p['device']!r}; expected 'cpu' or 'cuda'")
     if p["device"] == "cuda" and not torch.cuda.is_available():

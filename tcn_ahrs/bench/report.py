@@ -150,4 +150,8 @@ def to_markdown(res: Dict[str, Any]) -> str:
                  f"{r['vs_vqf']:.2f}x" if "vs_vqf" in r else r.get("skipped", "-"),
                  f"{r['vs_torch_loop']:.0f}x" if "vs_torch_loop" in r else "-"] for r in fi["rows"]]
         out += [_table(["filter", "device", "loop", "batch", "s per call", "samples/s", "/ VQF", "/ torch loop"], rows), ""]
+    if res.get("deploy"):
+        from .deploy import markdown as deploy_markdown
+
+        out += ["## Deployment runtimes and footprint", "", deploy_markdown(res["deploy"]), ""]
     return "\n".join(out)

@@ -75,14 +75,30 @@ class SpeedFilters:
 
 
 @dataclass
+class SpeedDeploy:
+    """Every runtime of a shipped residual checkpoint side by side (C, ONNX, torch.export,
+    TorchScript, numba) beside VQF's C++ and RIANN; the footprint of every shipped checkpoint."""
+    ckpt: str = "checkpoints/broad9.ckpt"
+    rate: float = 285.71          # Hz of the simulated samples (BROAD's rate: the checkpoint's own)
+    samples: int = 3000           # timed steps (single calls) per runtime; loops run the whole recording
+    warmup: int = 200
+    slow_steps: int = 300         # ONNX steps timed (~1 ms each); torch.export: a tenth of these
+    c: bool = True                # the C runtime (needs a C compiler)
+    onnx: bool = True             # needs the [deploy] extra
+    export: bool = True           # torch.export (slow: ~10 ms a step)
+    footprint_glob: str = "checkpoints/*.ckpt"
+
+
+@dataclass
 class SpeedConfig:
     """``speed:``."""
-    sections: List[str] = field(default_factory=lambda: ["train", "inference", "streaming", "filters"])
+    sections: List[str] = field(default_factory=lambda: ["train", "inference", "streaming", "filters", "deploy"])
     seed: int = 0
     train: SpeedTrain = field(default_factory=SpeedTrain)
     inference: SpeedInference = field(default_factory=SpeedInference)
     streaming: SpeedStreaming = field(default_factory=SpeedStreaming)
     filters: SpeedFilters = field(default_factory=SpeedFilters)
+    deploy: SpeedDeploy = field(default_factory=SpeedDeploy)
 
 
 #: quick=true: the sizes of a smoke run (over the defaults)
@@ -92,4 +108,6 @@ SPEED_QUICK: Dict[str, Any] = {
     "inference": {"samples": 600, "warmup": 1, "repeats": 2},
     "streaming": {"axes": [9], "samples": 100, "warmup": 10, "chunk": 10},
     "filters": {"samples": 200, "batches": [1, 4]},
+    "deploy": {"samples": 50, "warmup": 5, "slow_steps": 5, "onnx": False, "export": False,
+               "footprint_glob": "checkpoints/broad9.ckpt"},
 }

@@ -285,9 +285,9 @@ class StatefulLoop:
         self.reset(np.array([1.0, 0.0, 0.0, 0.0]))
 
     def _check(self, xs, dts) -> None:
-        from ..streaming.inputs import _check_samples
+        from ..streaming.inputs import check_samples
 
-        _check_samples(xs, dts)
+        check_samples(xs, dts)
 
     def reset(self, q0) -> None:
         """Start a new recording at attitude q0 (w, x, y, z), nav_from_body, ENU."""
@@ -297,9 +297,9 @@ class StatefulLoop:
 
     def step(self, sample, dt: float):
         """One sample (C,) -> (quat (4,), omega (3,)); ValueError before any state change."""
-        from ..streaming.inputs import _one_sample
+        from ..streaming.inputs import one_sample
 
-        x = _one_sample(self, sample, dt)
+        x = one_sample(self, sample, dt)
         q, w, self.state = self._run_graph(x[0], float(self._dt1[0]), self.state)
         return q, w
 
@@ -307,9 +307,9 @@ class StatefulLoop:
         """k samples (k, C), dt float or (k,) -> (quat (k, 4), omega (k, 3)): k steps."""
         import numpy as np
 
-        from ..streaming.inputs import _chunk
+        from ..streaming.inputs import checked_chunk
 
-        xs, dts = _chunk(self, samples, dt)
+        xs, dts = checked_chunk(self, samples, dt)
         quat, omega = np.empty((len(xs), 4)), np.empty((len(xs), 3))
         state = self.state
         for k in range(len(xs)):
@@ -322,9 +322,9 @@ class StatefulLoop:
         checked before the state is reset)."""
         import numpy as np
 
-        from ..streaming.inputs import _chunk, check_quat0
+        from ..streaming.inputs import checked_chunk, check_quat0
 
-        xs, dts = _chunk(self, imu, dt)
+        xs, dts = checked_chunk(self, imu, dt)
         check_quat0(q0)
         self.reset(q0)
         return self.step_chunk(xs, dts) if len(xs) else (np.zeros((0, 4)), np.zeros((0, 3)))
@@ -425,16 +425,16 @@ class CheckedBatch:
         self.axes = int(metadata["axes"])
 
     def _check(self, xs, dts) -> None:
-        from ..streaming.inputs import _check_samples
+        from ..streaming.inputs import check_samples
 
-        _check_samples(xs, dts)
+        check_samples(xs, dts)
 
     def run(self, imu, dt, q0):
         import numpy as np
 
-        from ..streaming.inputs import _chunk, check_quat0
+        from ..streaming.inputs import checked_chunk, check_quat0
 
-        xs, dts = _chunk(self, imu, dt)
+        xs, dts = checked_chunk(self, imu, dt)
         q = check_quat0(q0).numpy()
         if len(xs) == 0:
             return np.zeros((0, 4)), np.zeros((0, 3))

@@ -1,0 +1,243 @@
+"""The speed benchmark's ``deploy`` section: every runtime of a shipped residual checkpoint side by
+side in one run, on the same samples and one thread, beside VQF's C++ and RIANN, and what each
+shipped model costs on a device.
+
+Per-sample step rows (``median_us`` of single ``step`` calls from Python): the numba runtime
+(``BackboneStreaming``), TorchScript (``ResidualStreaming``), ONNX (``OnnxStreaming``, one
+onnxruntime run per sample), torch.export (``ExportedStreaming``, eager: timed on ``slow_steps``),
+the C runtime through ctypes, VQF's per-sample ``update`` and RIANN's ``predict_step``. Loop rows
+(``per_sample_us`` = the time of one call over the whole recording / its samples, no Python per
+sample): the C runtime's ``name_run`` (-O2; and float), VQF's C++ ``updateBatch``, numba's ``run``.
+The C runtime against VQF's C++ is the like-for-like figure: both loops in compiled code.
+
+Footprint rows, one per ``checkpoints/*.ckpt``: parameters, float32 weight bytes, the C runtime's
+weights (float32 convolutions + the head in double) and ring buffers (float32; the backbone's state
+adds a few hundred bytes: ``sizeof(state)`` of the timed model is in its row), the networks' FLOPs
+per sample.
+"""
+from __future__ import annotations
+
+import shutil
+import statistics
+import tempfile
+import time
+import warnings
+from pathlib import Path
+from typing import Any, Callable, Dict, List
+
+import numpy as np
+import torch
+
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _found(path) -> Path:
+    """``path`` as given, else inside the checkout (``checkpoints/...`` from any folder); ValueError
+    naming both when neither exists."""
+    p = Path(str(path))
+    if p.is_file() or p.is_absolute():
+        if not p.is_file():
+            raise ValueError(f"speed.deploy.ckpt: no checkpoint at {p}")
+        return p
+    if (REPO / p).is_file():
+        return REPO / p
+    raise ValueError(f"speed.deploy.ckpt: no checkpoint at {p} (nor at {REPO / p})")
+
+
+def _steps(name: str, step: Callable[[int], Any], n: int, warm: int) -> Dict[str, Any]:
+    for k in range(warm):
+        step(k)
+    ts = []
+    for k in range(warm, warm + n):
+        t = time.perf_counter_ns()
+        step(k)
+        ts.append((time.perf_counter_ns() - t) / 1e3)
+    return {"name": name, "kind": "step", "median_us": statistics.median(ts), "steps": n}
+
+
+def _loop(name: str, run: Callable[[], Any], n: int, repeats: int = 3) -> Dict[str, Any]:
+    run()  # warm (compilation, caches)
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        run()
+        best = min(best, time.perf_counter() - t)
+    return {"name": name, "kind": "loop", "per_sample_us": 1e6 * best / n, "samples": n}
+
+
+def _skipped(name: str, e: BaseException) -> Dict[str, Any]:
+    return {"name": name, "skipped": f"{type(e).__name__}: {e}"}
+
+
+def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
+    from ..checkpoint import model_from_checkpoint
+    from ..datasets.simulate import simulate
+
+    ckpt = str(_found(p["ckpt"]))
+    n, warm, slow = int(p["samples"]), int(p["warmup"]), int(p["slow_steps"])
+    torch.set_num_threads(1)
+    model = model_from_checkpoint(ckpt).eval()
+    axes = int(model.axes)
+    rate = float(p["rate"])
+    seq = simulate("walking", (n + warm) / rate + 1.0, rate, seed=seed, axes=axes)
+    imu = np.concatenate([seq.gyro, seq.accel] + ([seq.mag] if axes == 9 else []), 1)[:n + warm]
+    imu = np.ascontiguousarray(imu, dtype=np.float64)
+    dt = 1.0 / rate
+    q0 = np.array([1.0, 0.0, 0.0, 0.0])
+    rows: List[Dict[str, Any]] = []
+    tmp = Path(tempfile.mkdtemp())
+    try:
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")
+            rows += _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp, p)
+            rows += _peers(imu, dt, rate, n, warm)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    vqf_loop = next((r for r in rows if r["name"].startswith("VQF updateBatch")), None)
+    riann = next((r for r in rows if r["name"].startswith("RIANN predict_step") and "median_us" in r), None)
+    c_loop = next((r for r in rows if r["name"].startswith("C runtime run (double")), None)
+    c_step = next((r for r in rows if r["name"].startswith("C runtime step") and "median_us" in r), None)
+    goals = {}
+    if c_loop and vqf_loop and "per_sample_us" in vqf_loop:
+        goals["c_loop_vs_vqf_cpp"] = c_loop["per_sample_us"] / vqf_loop["per_sample_us"]  # goal <= 5
+    if c_loop and riann:
+        goals["riann_step_vs_c_loop"] = riann["median_us"] / c_loop["per_sample_us"]  # goal >= 10
+    if c_step and riann:
+        goals["riann_step_vs_c_step"] = riann["median_us"] / c_step["median_us"]
+    return {"ckpt": ckpt, "axes": axes, "rate_hz": rate, "rows": rows, "goals": goals,
+            "footprint": footprint_rows(p.get("footprint_glob") or "checkpoints/*.ckpt")}
+
+
+def _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp: Path, p) -> List[Dict[str, Any]]:
+    from ..export.backbone import ResidualStreaming
+    from ..streaming import BackboneStreaming
+
+    rows: List[Dict[str, Any]] = []
+    total = n + warm
+    bs = BackboneStreaming(model)
+    bs.reset(q0)
+    rows.append(_steps("numba BackboneStreaming step", lambda k: bs.step(imu[k], dt), n, warm))
+    rows.append(_loop("numba BackboneStreaming run (whole recording)", lambda: bs.run(imu, dt, q0), total))
+    ts = ResidualStreaming(model, {})
+    ts.reset(torch.as_tensor(q0))
+    xt = torch.as_tensor(imu)
+    rows.append(_steps("TorchScript ResidualStreaming step (eager module)", lambda k: ts.step(xt[k], dt), n, warm))
+    if p.get("c", True):
+        try:
+            from ..export.c import CRuntime, compile_c, export_c
+
+            cc = shutil.which("cc") or shutil.which("gcc")
+            if cc is None:
+                raise FileNotFoundError("no C compiler")
+            paths = export_c(ckpt, tmp, "m", overwrite=True)
+            xf = np.ascontiguousarray(imu, dtype=np.float32)
+            for real in ("double", "float"):
+                rt = CRuntime(compile_c(paths["c"], tmp / f"libm_{real}.so", real, cc), "m", int(model.axes))
+                rt.reset(q0)
+                rows.append(_loop(f"C runtime run ({real} backbone, -O2)", lambda: (rt.reset(q0), rt.run(xf, dt)), total))
+                rows[-1]["state_bytes"] = rt.state_size
+                if real == "double":
+                    rt.reset(q0)
+                    rows.append(_steps("C runtime step (ctypes call per sample)", lambda k: rt.step(xf[k], dt), n, warm))
+        except Exception as e:  # noqa: BLE001 - a missing compiler skips the rows, named
+            rows.append(_skipped("C runtime", e))
+    if p.get("onnx", True):
+        try:
+            from ..export.onnx_step import OnnxStreaming, export_onnx
+
+            export_onnx(ckpt, str(tmp / "m.onnx"), "streaming", overwrite=True)
+            os_ = OnnxStreaming(str(next(tmp.glob("m*.onnx"))))
+            os_.reset(q0)
+            rows.append(_steps("ONNX OnnxStreaming step (onnxruntime)", lambda k: os_.step(imu[k], dt), slow, 10))
+        except Exception as e:  # noqa: BLE001 - the [deploy] extra missing
+            rows.append(_skipped("ONNX OnnxStreaming step", e))
+    if p.get("export", True):
+        try:
+            from ..export.program import ExportedStreaming, export_program
+
+            export_program(ckpt, str(tmp / "m.pt2"), "streaming", overwrite=True)
+            ex = ExportedStreaming(str(next(tmp.glob("m*.pt2"))))
+            ex.reset(q0)
+            rows.append(_steps("torch.export ExportedStreaming step", lambda k: ex.step(imu[k], dt), max(5, slow // 10), 2))
+        except Exception as e:  # noqa: BLE001
+            rows.append(_skipped("torch.export ExportedStreaming step", e))
+    return rows
+
+
+def _peers(imu, dt, rate, n, warm) -> List[Dict[str, Any]]:
+    rows: List[Dict[str, Any]] = []
+    gyr = np.ascontiguousarray(imu[:, 0:3])
+    acc = np.ascontiguousarray(imu[:, 3:6])
+    mag = np.ascontiguousarray(imu[:, 6:9]) if imu.shape[1] == 9 else None
+    try:
+        from vqf import VQF
+
+        v = VQF(dt)
+        if mag is None:
+            rows.append(_steps("VQF update (per sample from Python, C++)", lambda k: v.update(gyr[k], acc[k]), n, warm))
+            rows.append(_loop("VQF updateBatch (C++ loop)", lambda: VQF(dt).updateBatch(gyr, acc), len(gyr)))
+        else:
+            rows.append(_steps("VQF update (per sample from Python, C++)", lambda k: v.update(gyr[k], acc[k], mag[k]), n, warm))
+            rows.append(_loop("VQF updateBatch (C++ loop)", lambda: VQF(dt).updateBatch(gyr, acc, mag), len(gyr)))
+    except Exception as e:  # noqa: BLE001 - the peers extra missing
+        rows.append(_skipped("VQF", e))
+    try:
+        from ..estimators.peers_riann import RIANNEstimator
+
+        rm = RIANNEstimator(axes=6)._model
+        rm.reset_state()
+        rm.set_sampling_rate(rate)
+        rows.append(_steps("RIANN predict_step (6-axis, onnxruntime)", lambda k: rm.predict_step(acc[k], gyr[k]), n, warm))
+    except Exception as e:  # noqa: BLE001
+        rows.append(_skipped("RIANN predict_step", e))
+    return rows
+
+
+def footprint_rows(pattern: str) -> List[Dict[str, Any]]:
+    """Parameters, weight bytes, the C runtime's state bytes and FLOPs per sample of each checkpoint."""
+    from ..checkpoint import model_from_checkpoint
+    from .common import footprint
+
+    out = []
+    paths = sorted(Path().glob(pattern)) or sorted(REPO.glob(pattern))
+    for path in paths:
+        model = model_from_checkpoint(path).eval()
+        row = {"checkpoint": path.stem, "axes": int(model.axes), **footprint(model)}
+        if getattr(model, "backbone", None) is not None:
+            from ..export.c import generate_c
+
+            info = generate_c(model, "m")["info"]
+            row["c_weight_bytes"] = int(info["weight_bytes"] + info["head_bytes_double"])
+            row["c_ring_bytes"] = 4 * int(info["ring_floats"])
+        out.append(row)
+    return out
+
+
+def markdown(res: Dict[str, Any]) -> str:
+    lines = [f"Deployment runtimes of `{res['ckpt']}` ({res['axes']}-axis, {res['rate_hz']:g} Hz samples), 1 thread:", "",
+             "| runtime | per-sample step from Python (µs, median) | per sample in a compiled loop (µs) |",
+             "|---|---|---|"]
+    for r in res["rows"]:
+        if "skipped" in r:
+            lines.append(f"| {r['name']} | skipped: {r['skipped']} | |")
+            continue
+        step = f"{r['median_us']:.1f}" if "median_us" in r else ""
+        loop = f"{r['per_sample_us']:.2f}" if "per_sample_us" in r else ""
+        lines.append(f"| {r['name']} | {step} | {loop} |")
+    g = res.get("goals") or {}
+    if g:
+        lines += ["", "Goals (issue 27): C loop / VQF C++ loop = "
+                  f"{g.get('c_loop_vs_vqf_cpp', float('nan')):.2f} (≤ 5); RIANN step / C loop = "
+                  f"{g.get('riann_step_vs_c_loop', float('nan')):.1f} (≥ 10); RIANN step / C step via ctypes = "
+                  f"{g.get('riann_step_vs_c_step', float('nan')):.1f}."]
+    c_rows = [r for r in res["rows"] if "state_bytes" in r]
+    if c_rows:
+        lines += ["", f"sizeof(state) of the C runtime: {c_rows[0]['state_bytes']} B (double backbone), "
+                  f"{c_rows[-1]['state_bytes']} B (float)."]
+    lines += ["", "| checkpoint | axes | parameters | C weights (B) | C ring buffers (B) | FLOPs / sample |",
+              "|---|---|---|---|---|---|"]
+    for f in res.get("footprint") or []:
+        lines.append(f"| {f['checkpoint']} | {f['axes']} | {f['parameters']} | {f.get('c_weight_bytes', '–')} | "
+                     f"{f.get('c_ring_bytes', '–')} | {f['flops_per_sample']} |")
+    return "\n".join(lines)
