@@ -20,6 +20,9 @@ Blocks (:data:`BLOCKS`):
     The cross-dataset matrix, ``python scripts/benchmark.py transfer`` →
     ``runs/benchmark/transfer/transfer.json``, rendered by the very function that writes the
     run's own ``transfer.md`` (:func:`tcn_ahrs.transfer.markdown`).
+``deploy`` (docs/deployment.md)
+    The speed benchmark's ``deploy`` section (``tcn-ahrs benchmark speed '+speed.sections=[deploy]'``
+    → ``speed.json``): every runtime side by side and the shipped models' footprint.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -41,9 +44,23 @@ if str(REPO) not in sys.path:  # this checkout's package, not another installed 
 from tcn_ahrs import transfer as _transfer  # noqa: E402
 
 TRANSFER_JSON = "docs/results/json/transfer.json"
+DEPLOY_JSON = "docs/results/json/deploy.json"
 
 
 # ------------------------------------------------------------------------------- renderings
+def _deploy_markdown(result: Mapping[str, Any]) -> str:
+    """Every deployment runtime side by side and the shipped models' footprint: the speed
+    benchmark's ``deploy`` section (:func:`tcn_ahrs.bench.deploy.markdown`), with its machine."""
+    from tcn_ahrs.bench.deploy import markdown
+
+    env = result.get("environment") or {}
+    load = ", ".join(f"{x:.2f}" for x in env.get("loadavg_start") or [])
+    head = (f"Measured {env.get('date', '?')} on {env.get('cpu', '?')} ({env.get('cpu_count', '?')} logical cores), "
+            f"git {env.get('git_commit', '?')}, load average at the start {load or '?'}: "
+            "`tcn-ahrs benchmark speed '+speed.sections=[deploy]'`.")
+    return head + "\n\n" + markdown(result["deploy"])
+
+
 def transfer_matrix(result: Mapping[str, Any]) -> str:
     """The full matrix: exactly the run's own ``transfer.md``."""
     return _transfer.markdown(result)
@@ -112,6 +129,7 @@ class Block(NamedTuple):
 BLOCKS: Dict[str, Block] = {
     "transfer_summary": Block(TRANSFER_JSON, transfer_summary, ("README.md",)),
     "transfer_matrix": Block(TRANSFER_JSON, transfer_matrix, ("docs/results.md",)),
+    "deploy": Block(DEPLOY_JSON, lambda result: _deploy_markdown(result), ("docs/deployment.md",)),
 }
 
 

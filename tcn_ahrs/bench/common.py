@@ -39,6 +39,7 @@ def _version(module: str) -> Optional[str]:
 def environment(device: str) -> Dict[str, Any]:
     """Versions, CPU, threads, GPU, load average."""
     env = {
+        "date": time.strftime("%Y-%m-%d"),
         "python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
         "platform": platform.platform(), "cpu": _cpu_model(), "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(), "device": device,

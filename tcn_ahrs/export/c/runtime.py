@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Any, Dict, Optional
+from typing import Any, Dict, Optional, Sequence
 
 import numpy as np
 import torch
@@ -149,9 +149,10 @@ def export_c(ckpt_path, out_dir, prefix: Optional[str] = None, overwrite: bool =
     return {k: str(v) for k, v in paths.items()}
 
 
-def compile_c(c_path, out_so, real: str = "double", cc: Optional[str] = None) -> str:
+def compile_c(c_path, out_so, real: str = "double", cc: Optional[str] = None, flags: Sequence[str] = ()) -> str:
     """Build the generated source as a shared library with the system compiler (the strict
-    flags the tests use); ``real``: the backbone's scalar type. Returns the library's path."""
+    flags the tests use, then ``flags``, e.g. ``["-march=native"]``); ``real``: the backbone's
+    scalar type. Returns the library's path."""
     import shutil
     import subprocess
 
@@ -159,7 +160,7 @@ def compile_c(c_path, out_so, real: str = "double", cc: Optional[str] = None) ->
     if cc is None:
         raise ExportError("C export: no C compiler (cc) found")
     cmd = [cc, "-std=c99", "-pedantic", "-O2", "-Wall", "-Wextra", "-Wshadow", "-Wdouble-promotion", "-Werror",
-           "-shared", "-fPIC", f"-DTCN_AHRS_REAL={real}",
+           "-shared", "-fPIC", f"-DTCN_AHRS_REAL={real}", *flags,
            str(c_path), "-o", str(out_so), "-lm"]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
