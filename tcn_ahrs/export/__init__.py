@@ -67,7 +67,7 @@ from .. import __version__
 from ..conventions import NETWORK_DTYPE
 from .closed_loop import ClosedLoopBatch, ClosedLoopStreaming
 from .fused import hamilton_table, fuse_model, quat_cumprod, quat_integrate
-from .inputs import ExportError
+from .inputs import MODES, ExportError
 from .open_loop import NET_DTYPES, BatchAHRS, StreamingAHRS
 
 __all__ = ["export_main", "export_batch", "export_streaming", "export_checkpoint", "read_metadata", "build_metadata",
@@ -75,7 +75,6 @@ __all__ = ["export_main", "export_batch", "export_streaming", "export_checkpoint
            "ClosedLoopStreaming", "fuse_model", "quat_cumprod", "quat_integrate", "MODES", "NET_DTYPES",
            "CHANNELS", "hamilton_table"]
 
-MODES = ("batch", "streaming", "both")
 CHANNELS = {6: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z"],
             9: ["gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z", "mag_x", "mag_y", "mag_z"]}
 

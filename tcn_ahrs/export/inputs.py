@@ -2,7 +2,8 @@
 # No `from __future__ import annotations`: TorchScript reads the class-level attribute
 # annotations (List[Tensor], ...) as real types.
 import math
-from typing import List, Union
+from pathlib import Path
+from typing import Dict, List, Union
 
 import torch
 from torch import Tensor, nn
@@ -81,3 +82,21 @@ class InputChecks(nn.Module):
             raise ValueError("dt: expected finite time steps in (0, " + self.max_dt_text + "] s after sample 0, got "
                              + str(float(d[k])) + " at index " + str(k))
         return d
+
+
+MODES = ("batch", "streaming", "both")
+
+
+def output_paths(out_path, mode: str, suffix: str) -> Dict[str, Path]:
+    """The files an export of ``mode`` writes, every format alike: ``both``: the batch model in
+    FILE, the streaming one in FILE_streaming (``suffix`` when FILE has none); ``batch`` /
+    ``streaming``: that one in FILE."""
+    out = Path(out_path)
+    if mode not in MODES:
+        raise ValueError(f"export mode {mode!r}: expected one of {MODES}")
+    paths: Dict[str, Path] = {}
+    if mode in ("batch", "both"):
+        paths["batch"] = out
+    if mode in ("streaming", "both"):
+        paths["streaming"] = out if mode == "streaming" else out.with_name(f"{out.stem}_streaming{out.suffix or suffix}")
+    return paths

@@ -30,25 +30,11 @@ from typing import Dict, Optional
 import numpy as np
 import torch
 
-from .inputs import ExportError
+from .inputs import ExportError, output_paths
 from .stateless import CheckedBatch, ResidualScan, StatefulLoop, example_inputs, prepare, staged_write
 
-MODES = ("batch", "streaming", "both")
 STEP_INPUTS, STEP_OUTPUTS = ["sample", "dt", "state"], ["quat", "omega", "state_out"]
 BATCH_INPUTS, BATCH_OUTPUTS = ["imu", "dt", "q0"], ["quat", "omega"]
-
-
-def onnx_paths(out_path, mode: str) -> Dict[str, Path]:
-    """mode=both: batch graph in FILE.onnx, step graph in FILE_streaming.onnx (as TorchScript)."""
-    out = Path(out_path)
-    if mode not in MODES:
-        raise ValueError(f"export mode {mode!r}: expected one of {MODES}")
-    paths: Dict[str, Path] = {}
-    if mode in ("batch", "both"):
-        paths["batch"] = out
-    if mode in ("streaming", "both"):
-        paths["streaming"] = out if mode == "streaming" else out.with_name(f"{out.stem}_streaming{out.suffix or '.onnx'}")
-    return paths
 
 
 def _require():
@@ -73,7 +59,7 @@ def export_onnx(ckpt_path, out_path, mode: str = "both", rate_hz: Optional[float
     """Export a residual checkpoint as ONNX (see the module docstring). Returns {"batch": path,
     "streaming": path} (the ones written). Other model kinds: :class:`ExportError`."""
     _require()
-    paths = onnx_paths(out_path, mode)
+    paths = output_paths(out_path, mode, ".onnx")
     step, md = prepare(ckpt_path, list(paths.values()), "onnx", rate_hz, overwrite, onnx=True)
     x, dt, state = example_inputs(step)
     written: Dict[str, str] = {}

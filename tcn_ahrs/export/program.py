@@ -17,36 +17,21 @@ rest in float64, the same ops as the TorchScript modules.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
 import torch
 
-from .inputs import ExportError
+from .inputs import ExportError, output_paths
 from .stateless import CheckedBatch, ResidualScan, StatefulLoop, example_inputs, prepare, staged_write
 
-MODES = ("batch", "streaming", "both")
-
-
-def program_paths(out_path, mode: str) -> Dict[str, Path]:
-    """mode=both: batch program in FILE.pt2, step program in FILE_streaming.pt2."""
-    out = Path(out_path)
-    if mode not in MODES:
-        raise ValueError(f"export mode {mode!r}: expected one of {MODES}")
-    paths: Dict[str, Path] = {}
-    if mode in ("batch", "both"):
-        paths["batch"] = out
-    if mode in ("streaming", "both"):
-        paths["streaming"] = out if mode == "streaming" else out.with_name(f"{out.stem}_streaming{out.suffix or '.pt2'}")
-    return paths
 
 
 def export_program(ckpt_path, out_path, mode: str = "both", rate_hz: Optional[float] = None,
                    overwrite: bool = False) -> Dict[str, str]:
     """Export a residual checkpoint with ``torch.export`` (see the module docstring). Returns
     {"batch": path, "streaming": path} (the ones written). Other model kinds: ExportError."""
-    paths = program_paths(out_path, mode)
+    paths = output_paths(out_path, mode, ".pt2")
     step, md = prepare(ckpt_path, list(paths.values()), "torch.export", rate_hz, overwrite, onnx=False)
     x, dt, state = example_inputs(step)
     written: Dict[str, str] = {}
