@@ -98,7 +98,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
         "LAYER_CALLS": "\n".join(calls),
         "WTS": _f32(wts), "HEAD_W": _f64(head_w), "HEAD_B": _f64(head_b), "PARAMS": _f64(p), "STATE0": _f64(s0),
         "BIAS0": _f64(bias0), "LIMITS": _f64(INPUT_LIMITS[:c]), "MAX_DT": repr(float(MAX_DT)),
-        "ERF_P": _f64(ERF_P), "ERF_Q": _f64(ERF_Q), "N_ERF_P": str(len(ERF_P)), "N_ERF_Q": str(len(ERF_Q)),
+        "ERF_P": _f32(ERF_P), "ERF_Q": _f32(ERF_Q), "N_ERF_P": str(len(ERF_P)), "N_ERF_Q": str(len(ERF_Q)),
         "GYRO_SCALE": repr(float(cal.gyro_scale)), "GYRO_CLIP": repr(float(cal.gyro_clip)),
         "TRUST_MAX": repr(float(loop.trust_max)), "TRUST_W": repr(float(loop.trust_weight)),
         "ACC_SCALE": repr(float(loop.acc_trust_scale)), "MAG_SCALE": repr(float(loop.mag_trust_scale)),
