@@ -12,7 +12,7 @@ import pytest
 
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.export.c import kernel_c
-from tcn_ahrs.export.c.runtime import template
+from tcn_ahrs.export.c.runtime import WIDE_KERNELS, template
 from tcn_ahrs.export.c import CRuntime, compile_c, export_c, generate_c
 from tcn_ahrs.export.inputs import ExportError
 from tcn_ahrs.filters import backbone as bb
@@ -66,6 +66,20 @@ def built(tmp_path_factory):
     return libs
 
 
+@pytest.fixture(scope="module")
+def runtimes(built, tmp_path_factory):
+    """(name, real) -> (CRuntime, BackboneStreaming): the double build and the float build
+    (-DTCN_AHRS_REAL=float: float arithmetic, the low-pass filters and the heading update in
+    double) of each checkpoint."""
+    out = tmp_path_factory.mktemp("c_runtime_float")
+    rts = {}
+    for name, (c_rt, stream, paths) in built.items():
+        rts[name, "double"] = (c_rt, stream)
+        so = compile_c(paths["c"], out / f"lib{name}_float.so", "float", CC)
+        rts[name, "float"] = (CRuntime(so, name, int(name[-1])), stream)
+    return rts
+
+
 def _compare(c_rt, stream, imu, dt, q0):
     q0 = np.asarray(q0, dtype=np.float32)  # both runtimes from the same float32 inputs
     c_rt.reset(q0)
@@ -105,7 +119,8 @@ def test_the_translated_backbone_equals_the_python_kernel(tmp_path):
     settings of the parameter branches."""
     import ctypes as ct
 
-    src, _ = kernel_c(K, "bb_", ("coefficients", "gyro_update", "acc_update", "mag_update", "quat6", "quat9"))
+    src, _ = kernel_c(K, "bb_", ("coefficients", "gyro_update", "acc_update", "mag_update", "quat6", "quat9"),
+                      WIDE_KERNELS)
     code = "#include <math.h>\n" + template("helpers.h.in") + src + DRIVER % {"N_COEFF": K.N_COEFF, "S_BIAS": K.S_BIAS,
                                                              "S_REST": K.S_REST, "S_MAGDIST": K.S_MAGDIST,
                                                              "S_DELTA": K.S_DELTA}
@@ -161,25 +176,27 @@ def test_untrained_model_runs_as_the_backbone(tmp_path, axes):
 
 
 # ------------------------------------------------------------------ shipped checkpoints
+@pytest.mark.parametrize("real", ["double", "float"])
 @pytest.mark.parametrize("name", ["broad9", "broad6"])
-def test_shipped_checkpoint_matches_the_streaming_runtime_on_a_simulated_recording(built, name):
-    c_rt, stream, _ = built[name]
+def test_shipped_checkpoint_matches_the_streaming_runtime_on_a_simulated_recording(runtimes, name, real):
+    c_rt, stream = runtimes[name, real]
     axes = int(name[-1])
-    for profile, seed in (("walking", 1), ("fast_rotation", 2)):
+    for profile, seed in (("walking", 1), ("fast_rotation", 2), ("drone", 3)):
         seq = simulate(profile, 60.0, 200.0, seed=seed, axes=axes)
         ang, dw = _compare(c_rt, stream, _imu(seq, axes), np.float32(1.0 / 200.0), seq.quat[0])
         assert ang <= TOL, (profile, ang)
         assert dw < 1e-5
 
 
+@pytest.mark.parametrize("real", ["double", "float"])
 @pytest.mark.parametrize("name", ["broad9", "broad6"])
 @pytest.mark.parametrize("rec", ["05_undisturbed_slow_rotation_with_breaks_B", "29_disturbed_stationary_magnet_B"])
-def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(built, name, rec):
+def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(runtimes, name, rec, real):
     from tcn_ahrs.datasets import broad
 
     if not (BROAD / f"{rec}.hdf5").is_file():
         pytest.skip(f"BROAD recording {rec} not found under ../shared/datasets/broad")
-    c_rt, stream, _ = built[name]
+    c_rt, stream = runtimes[name, real]
     axes = int(name[-1])
     seq = broad.load_recording(BROAD, rec)
     k0 = int(np.argmax(np.isfinite(seq.quat).all(1)))
@@ -209,15 +226,15 @@ def test_vector_loops_equal_the_scalar_loops(built, tmp_path, flags):
 
 
 @needs_cc
-def test_float_backbone_builds_and_stays_close(built, tmp_path):
-    """-DTCN_AHRS_REAL=float compiles cleanly; it is NOT within the 1e-4 rad parity (~6e-4 rad
-    over a minute, see docs), hence the double default; this bounds it."""
-    _, stream, paths = built["broad9"]
-    c_rt = CRuntime(compile_c(paths["c"], tmp_path / "libf.so", "float", CC), "broad9", 9)
-    seq = simulate("walking", 60.0, 200.0, seed=1, axes=9)
-    ang, _ = _compare(c_rt, stream, _imu(seq, 9), np.float32(1.0 / 200.0), seq.quat[0])
-    assert ang < 5e-3
-    assert c_rt.state_size < built["broad9"][0].state_size
+def test_float_build_keeps_the_filters_in_double(built, runtimes):
+    """The float build's state: the backbone's arrays (its low-pass states among them) stay
+    double, so it differs from the double build only in q0, m_conj and last_dt."""
+    c_dbl, _, paths = built["broad9"]
+    c_flt, _ = runtimes["broad9", "float"]
+    assert 0 < c_dbl.state_size - c_flt.state_size <= 9 * 4
+    assert "double s[BROAD9_N_STATE]" in Path(paths["h"]).read_text()
+    src = Path(paths["c"]).read_text()
+    assert "static WREAL broad9_bb_lp(" in src and "static void broad9_bb_gyro_update(WREAL *s, const WREAL *p, const WREAL *c, REAL gx" in src
 
 
 # ------------------------------------------------------------------ bad inputs
@@ -352,13 +369,19 @@ def _toy(tmp_path, text, name):
 
 
 @needs_cc
-def test_translator_keeps_python_semantics(tmp_path):
+@pytest.mark.parametrize("wide", [(), ("swap",), ("step",)])
+def test_translator_keeps_python_semantics(tmp_path, wide):
+    """The toy kernel in C equals Python's, with either function computed in WREAL (the
+    conversions between the two scalar types are explicit: the float build compiles with
+    -Wdouble-promotion -Werror)."""
     import ctypes as ct
 
     mod = _toy(tmp_path, TOY, "toy_kernel")
-    src, sig = kernel_c(mod, "toy_", ["step"])
-    assert "const REAL *p" in sig["step"] and "REAL *ret1" in sig["swap"]
+    src, sig = kernel_c(mod, "toy_", ["step"], wide)
+    assert "const WREAL *p" in sig["step"]
+    assert ("WREAL *ret1" if "swap" in wide else "REAL *ret1") in sig["swap"]
     (tmp_path / "toy.c").write_text("#include <math.h>\n" + template("helpers.h.in") + src.replace("static void toy_step", "void toy_step"))
+    compile_c(tmp_path / "toy.c", tmp_path / "libtoy_f.so", "float", CC)
     lib = ct.CDLL(compile_c(tmp_path / "toy.c", tmp_path / "libtoy.so", "double", CC))
     dbl = ct.POINTER(ct.c_double)
     for flag in (0.0, 1.0):

@@ -26,6 +26,9 @@ def template(name: str) -> str:
 
 ROOTS_6 = ("coefficients", "gyro_update", "acc_update", "quat6", "qmul")
 ROOTS_9 = ROOTS_6 + ("mag_update", "quat9")
+# the kernels computed in double in every build (the low-pass filters and their coefficients;
+# helpers.h.in WREAL says why)
+WIDE_KERNELS = ("butter", "coefficients", "lp_begin", "lp", "lp_end", "lp3", "mag_update")
 
 
 def _f32(a) -> str:
@@ -89,7 +92,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     p = list(loop.params.vector())
     s0 = K.initial_state(loop.params)
     bias0 = (loop.bias_prior * loop.bias_init.detach().double()).numpy()
-    kernels, _ = kernel_c(K, f"{name}_bb_", ROOTS_9 if use_mag else ROOTS_6)
+    kernels, _ = kernel_c(K, f"{name}_bb_", ROOTS_9 if use_mag else ROOTS_6, WIDE_KERNELS)
     subst = {
         "NAME": name, "UP": up, "C": str(c), "N_STATE": str(K.N_STATE), "N_COEFF": str(K.N_COEFF),
         "N_PARAM": str(K.N_PARAM), "N_RING": str(max(n_ring, 1)), "N_LAYERS": str(max(nl, 1)), "K": str(kk),
