@@ -7,7 +7,7 @@
  *   cc -std=c99 -O2 -Wall -Wextra -DMODEL=broad9 -DMODEL_HEADER='"broad9.h"' stream.c broad9.c -o stream -lm
  *   ./stream imu.csv 0.005 [q0w q0x q0y q0z] > quat.csv
  *
- * (or: make MODEL=broad9, see the Makefile). Add -DTCN_AHRS_REAL=float for a float backbone. */
+ * (or: make MODEL=broad9, see the Makefile). Add -DTCN_AHRS_REAL=double for a double backbone. */
 #define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
 #include <stdlib.h>

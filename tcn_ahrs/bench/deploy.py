@@ -7,11 +7,11 @@ Per-sample step rows (``median_us`` of single ``step`` calls from Python): the n
 onnxruntime run per sample), torch.export (``ExportedStreaming``, eager: timed on ``slow_steps``),
 the C runtime through ctypes, VQF's per-sample ``update`` and RIANN's ``predict_step``. Loop rows
 (``per_sample_us`` = the time of one call over the whole recording / its samples, no Python per
-sample): the C runtime's ``name_run`` (-O2; and float), VQF's C++ ``updateBatch``, numba's ``run``.
+sample): the C runtime's ``name_run`` (-O2 and -march=native; float, the default, and double), VQF's C++ ``updateBatch``, numba's ``run``.
 The C runtime against VQF's C++ is the like-for-like figure: both loops in compiled code.
 
 Footprint rows, one per ``checkpoints/*.ckpt``: parameters, float32 weight bytes, the C runtime's
-weights (float32 convolutions + the head in double) and ring buffers (float32; the backbone's state
+weights (float32 convolutions + the head) and ring buffers (float32; the backbone's state
 adds a few hundred bytes: ``sizeof(state)`` of the timed model is in its row), the networks' FLOPs
 per sample.
 """
@@ -96,8 +96,8 @@ def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
         shutil.rmtree(tmp, ignore_errors=True)
     vqf_loop = next((r for r in rows if r["name"].startswith("VQF updateBatch")), None)
     riann = next((r for r in rows if r["name"].startswith("RIANN predict_step") and "median_us" in r), None)
-    c_loop = next((r for r in rows if r["name"].startswith("C runtime run (double backbone, -O2)")), None)
-    c_native = next((r for r in rows if r["name"].startswith("C runtime run (double backbone, -O2 -march")), None)
+    c_loop = next((r for r in rows if r["name"].startswith("C runtime run (float backbone, -O2)")), None)
+    c_native = next((r for r in rows if r["name"].startswith("C runtime run (float backbone, -O2 -march")), None)
     c_step = next((r for r in rows if r["name"].startswith("C runtime step") and "median_us" in r), None)
     goals = {}
     if c_loop and vqf_loop and "per_sample_us" in vqf_loop:
@@ -137,14 +137,14 @@ def _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp: Path, p) -> List
                 raise FileNotFoundError("no C compiler")
             paths = export_c(ckpt, tmp, "m", overwrite=True)
             xf = np.ascontiguousarray(imu, dtype=np.float32)
-            for real, flags in (("double", ()), ("float", ()), ("double", ("-march=native",)), ("float", ("-march=native",))):
+            for real, flags in (("float", ()), ("double", ()), ("float", ("-march=native",)), ("double", ("-march=native",))):
                 tag = " ".join(("-O2",) + flags)
                 so = compile_c(paths["c"], tmp / f"libm_{real}_{len(flags)}.so", real, cc, flags)
                 rt = CRuntime(so, "m", int(model.axes))
                 rt.reset(q0)
                 rows.append(_loop(f"C runtime run ({real} backbone, {tag})", lambda: (rt.reset(q0), rt.run(xf, dt)), total))
                 rows[-1]["state_bytes"] = rt.state_size
-                if real == "double" and not flags:
+                if real == "float" and not flags:
                     rt.reset(q0)
                     rows.append(_steps("C runtime step (ctypes call per sample)", lambda k: rt.step(xf[k], dt), n, warm))
         except Exception as e:  # noqa: BLE001 - a missing compiler skips the rows, named
@@ -242,8 +242,8 @@ def markdown(res: Dict[str, Any]) -> str:
                   f"C step through ctypes = {g.get('riann_step_vs_c_step', nan):.1f}."]
     c_rows = [r for r in res["rows"] if "state_bytes" in r]
     if c_rows:
-        lines += ["", f"sizeof(state) of the C runtime: {c_rows[0]['state_bytes']} B (double backbone), "
-                  f"{c_rows[1]['state_bytes'] if len(c_rows) > 1 else '–'} B (float)."]
+        lines += ["", f"sizeof(state) of the C runtime: {c_rows[0]['state_bytes']} B (float backbone, the default), "
+                  f"{c_rows[1]['state_bytes'] if len(c_rows) > 1 else '–'} B (double)."]
     lines += ["", "| checkpoint | axes | parameters | C weights (B) | C ring buffers (B) | FLOPs / sample |",
               "|---|---|---|---|---|---|"]
     for f in res.get("footprint") or []:

@@ -28,8 +28,9 @@ a refused sample *before* any state changes (the contract of the streaming runti
 ranges of :mod:`tcn_ahrs.conventions`). Any output pointer may be NULL. ``flags``:
 ``NAME_FLAG_REST`` (the backbone detects rest), ``NAME_FLAG_MAG_DISTURBED`` (9 axes: the field
 is rejected as disturbed), ``NAME_FLAG_ACC_SKIPPED`` / ``NAME_FLAG_MAG_SKIPPED`` (an all-zero
-reading, skipped as VQF does). The backbone's scalar type is ``TCN_AHRS_REAL`` (compile with
-``-DTCN_AHRS_REAL=float`` for a float build; default double), the networks run in float32.
+reading, skipped as VQF does). The backbone's scalar type is ``TCN_AHRS_REAL`` (float by default;
+``-DTCN_AHRS_REAL=double`` for a double build); its low-pass filters, their coefficients and the
+heading update compute in double in both (``runtime.WIDE_KERNELS``), the networks in float32.
 """
 from .runtime import CRuntime, compile_c, export_c, generate_c
 from .translate import kernel_c

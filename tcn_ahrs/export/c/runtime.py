@@ -152,7 +152,7 @@ def export_c(ckpt_path, out_dir, prefix: Optional[str] = None, overwrite: bool =
     return {k: str(v) for k, v in paths.items()}
 
 
-def compile_c(c_path, out_so, real: str = "double", cc: Optional[str] = None, flags: Sequence[str] = ()) -> str:
+def compile_c(c_path, out_so, real: str = "float", cc: Optional[str] = None, flags: Sequence[str] = ()) -> str:
     """Build the generated source as a shared library with the system compiler (the strict
     flags the tests use, then ``flags``, e.g. ``["-march=native"]``); ``real``: the backbone's
     scalar type. Returns the library's path."""
