@@ -25,7 +25,14 @@ BROAD = next((p / "shared" / "datasets" / "broad" for p in (ROOT.parent, ROOT.pa
               if (p / "shared" / "datasets" / "broad").is_dir()), ROOT.parent / "shared" / "datasets" / "broad")
 CC = shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler")
-TOL = 1e-4  # rad: the C runtime (double backbone) against BackboneStreaming
+TOL = 1e-4  # rad: the C runtime (float or double build) against BackboneStreaming
+# the shipped checkpoints the C runtime is checked on: broad9/broad6 (both networks off under
+# their knobs: the backbone alone), oxiod9/euroc6 (both networks on), tumvi6 (the trust net only)
+NAMES = ("broad9", "broad6", "oxiod9", "euroc6", "tumvi6")
+
+
+def _axes(name):
+    return 9 if name.endswith("9") else 6
 
 
 def _angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -57,12 +64,12 @@ def built(tmp_path_factory):
         pytest.skip("no C compiler")
     out = tmp_path_factory.mktemp("c_runtime")
     libs = {}
-    for name in ("broad9", "broad6"):
+    for name in NAMES:
         paths = export_c(CKPTS / f"{name}.ckpt", out, name)
         so = compile_c(paths["c"], out / f"lib{name}.so", "double", CC)
         stream = BackboneStreaming(model_from_checkpoint(CKPTS / f"{name}.ckpt"))
         stream.chunk_networks = 1 << 30  # the networks per sample, as the C runtime
-        libs[name] = (CRuntime(so, name, int(name[-1])), stream, paths)
+        libs[name] = (CRuntime(so, name, _axes(name)), stream, paths)
     return libs
 
 
@@ -76,7 +83,7 @@ def runtimes(built, tmp_path_factory):
     for name, (c_rt, stream, paths) in built.items():
         rts[name, "double"] = (c_rt, stream)
         so = compile_c(paths["c"], out / f"lib{name}_float.so", "float", CC)
-        rts[name, "float"] = (CRuntime(so, name, int(name[-1])), stream)
+        rts[name, "float"] = (CRuntime(so, name, _axes(name)), stream)
     return rts
 
 
@@ -177,10 +184,10 @@ def test_untrained_model_runs_as_the_backbone(tmp_path, axes):
 
 # ------------------------------------------------------------------ shipped checkpoints
 @pytest.mark.parametrize("real", ["double", "float"])
-@pytest.mark.parametrize("name", ["broad9", "broad6"])
+@pytest.mark.parametrize("name", NAMES)
 def test_shipped_checkpoint_matches_the_streaming_runtime_on_a_simulated_recording(runtimes, name, real):
     c_rt, stream = runtimes[name, real]
-    axes = int(name[-1])
+    axes = _axes(name)
     for profile, seed in (("walking", 1), ("fast_rotation", 2), ("drone", 3)):
         seq = simulate(profile, 60.0, 200.0, seed=seed, axes=axes)
         ang, dw = _compare(c_rt, stream, _imu(seq, axes), np.float32(1.0 / 200.0), seq.quat[0])
@@ -189,7 +196,7 @@ def test_shipped_checkpoint_matches_the_streaming_runtime_on_a_simulated_recordi
 
 
 @pytest.mark.parametrize("real", ["double", "float"])
-@pytest.mark.parametrize("name", ["broad9", "broad6"])
+@pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("rec", ["05_undisturbed_slow_rotation_with_breaks_B", "29_disturbed_stationary_magnet_B"])
 def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(runtimes, name, rec, real):
     from tcn_ahrs.datasets import broad
@@ -197,7 +204,7 @@ def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(runtimes, nam
     if not (BROAD / f"{rec}.hdf5").is_file():
         pytest.skip(f"BROAD recording {rec} not found under ../shared/datasets/broad")
     c_rt, stream = runtimes[name, real]
-    axes = int(name[-1])
+    axes = _axes(name)
     seq = broad.load_recording(BROAD, rec)
     k0 = int(np.argmax(np.isfinite(seq.quat).all(1)))
     ang, dw = _compare(c_rt, stream, _imu(seq, axes), np.float32(1.0 / seq.rate), seq.quat[k0])
@@ -210,11 +217,11 @@ def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(runtimes, nam
 def test_vector_loops_equal_the_scalar_loops(built, tmp_path, flags):
     """The networks' vector loops (GNU C vectors: SSE, AVX with -march=native, NEON) sum each
     output in the scalar loop's order: the same floats out as -DTCN_AHRS_NO_VECTOR's build."""
-    c_vec, _, paths = built["broad9"]
+    c_vec, _, paths = built["oxiod9"]
     if flags:
-        c_vec = CRuntime(compile_c(paths["c"], tmp_path / "libv.so", "double", CC, flags), "broad9", 9)
+        c_vec = CRuntime(compile_c(paths["c"], tmp_path / "libv.so", "double", CC, flags), "oxiod9", 9)
     c_sca = CRuntime(compile_c(paths["c"], tmp_path / "libs.so", "double", CC, ["-DTCN_AHRS_NO_VECTOR", *flags]),
-                     "broad9", 9)
+                     "oxiod9", 9)
     imu = _imu(simulate("walking", 20.0, 200.0, seed=3, axes=9), 9)
     outs = []
     for rt in (c_vec, c_sca):
@@ -229,19 +236,35 @@ def test_vector_loops_equal_the_scalar_loops(built, tmp_path, flags):
 def test_float_build_keeps_the_filters_in_double(built, runtimes):
     """The float build's state: the backbone's arrays (its low-pass states among them) stay
     double, so it differs from the double build only in q0, m_conj and last_dt."""
-    c_dbl, _, paths = built["broad9"]
-    c_flt, _ = runtimes["broad9", "float"]
+    c_dbl, _, paths = built["oxiod9"]
+    c_flt, _ = runtimes["oxiod9", "float"]
     assert 0 < c_dbl.state_size - c_flt.state_size <= 9 * 4
-    assert "double s[BROAD9_N_STATE]" in Path(paths["h"]).read_text()
+    assert "double s[OXIOD9_N_STATE]" in Path(paths["h"]).read_text()
     src = Path(paths["c"]).read_text()
-    assert "static WREAL broad9_bb_lp(" in src and "static void broad9_bb_gyro_update(WREAL *s, const WREAL *p, const WREAL *c, REAL gx" in src
+    assert "static WREAL oxiod9_bb_lp(" in src
+    assert "static void oxiod9_bb_gyro_update(WREAL *s, const WREAL *p, const WREAL *c, REAL gx" in src
+
+
+def test_networks_that_are_off_are_not_in_the_runtime(built):
+    """Under its knobs broad9 applies neither network (gyro_clip 0, trust_weight 0): its C
+    runtime is the backbone alone (no weights, no ring buffers; its parity is tested above);
+    tumvi6 keeps the trust net only (half the ring buffers of oxiod9/euroc6's two nets)."""
+    from tcn_ahrs.checkpoint import model_from_checkpoint
+    from tcn_ahrs.export.c.runtime import live_networks
+
+    live = {n: live_networks(model_from_checkpoint(CKPTS / f"{n}.ckpt")) for n in ("broad9", "tumvi6", "euroc6")}
+    assert live == {"broad9": (), "tumvi6": ("trust",), "euroc6": ("gyro", "trust")}
+    size = {n: built[n][0].state_size for n in ("broad9", "tumvi6", "euroc6")}
+    assert size["broad9"] < 2048
+    assert 0.45 < (size["tumvi6"] - size["broad9"]) / (size["euroc6"] - size["broad9"]) < 0.55
+    assert "conv_layer(st" not in Path(built["broad9"][2]["c"]).read_text()
 
 
 # ------------------------------------------------------------------ bad inputs
-@pytest.mark.parametrize("name", ["broad9", "broad6"])
+@pytest.mark.parametrize("name", ["broad9", "oxiod9", "euroc6"])
 def test_bad_samples_are_refused_before_the_state_changes(built, name):
     c_rt, _, _ = built[name]
-    axes = int(name[-1])
+    axes = _axes(name)
     seq = simulate("walking", 3.0, 200.0, seed=4, axes=axes)
     imu = _imu(seq, axes)
     dt = 1.0 / 200.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import re
 from pathlib import Path
-from typing import Any, Dict, Optional, Sequence
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -34,7 +34,10 @@ WIDE_KERNELS = ("butter", "coefficients", "lp_begin", "lp", "lp_end", "lp3", "ma
 def _f32(a) -> str:
     """float32 values as exact C literals."""
     a = np.asarray(a, dtype=np.float32).reshape(-1)
-    return ",\n".join(", ".join(f"{float(v):.9g}f" for v in a[i:i + 8]) for i in range(0, a.size, 8)) or "0.0f"
+    def lit(v: float) -> str:
+        t = f"{v:.9g}"
+        return (t if any(ch in t for ch in ".e") else t + ".0") + "f"  # 0 -> 0.0f, not 0f
+    return ",\n".join(", ".join(lit(float(v)) for v in a[i:i + 8]) for i in range(0, a.size, 8)) or "0.0f"
 
 
 def _f64(a) -> str:
@@ -58,6 +61,49 @@ def _network_arrays(model: nn.Module):
     return wts, w.numpy().copy(), b.numpy().copy(), [int(v) for v in ints], int(rings.size), n_trust
 
 
+def live_networks(model: nn.Module) -> Tuple[str, ...]:
+    """The residual model's networks whose output reaches the attitude under its inference knobs:
+    "gyro" unless ``gyro_clip`` is 0 (the residual is learned, not applied), "trust" unless
+    ``trust_weight`` is 0 (every trust 1). A network that is off is not in the C runtime: no
+    weights, no ring buffers, no arithmetic (the outputs are the same floats)."""
+    cal, loop = model.calibration, model.backbone
+    out = []
+    if float(cal.gyro_clip) != 0.0 and float(cal.gyro_scale) != 0.0:
+        out.append("gyro")
+    if float(loop.trust_weight) != 0.0:
+        out.append("trust")
+    return tuple(out)
+
+
+def _keep_networks(wts: np.ndarray, layers: List[List[int]], head_w: np.ndarray, kk: int, live: Sequence[str]):
+    """The tap-major weights, layers (g, c_in, c_out, d, span, w_off, b_off, ring_off) and head of
+    the networks in ``live`` only (groups: [gyro, trust]; the first layer one group whose outputs
+    are the gyro net's then the trust net's; the head's columns the gyro net's last features then
+    the trust net's). Returns (wts, layers, head_w, ring floats)."""
+    keep = [i for i, n in enumerate(("gyro", "trust")) if n in live]
+    if len(keep) == 2 or not layers:
+        return wts, layers, head_w, sum(sp * g * cin for g, cin, _, _, sp, *_ in layers)
+    if not keep:
+        return np.zeros(1, np.float32), [], np.zeros((head_w.shape[0], 1)), 0
+    gi = keep[0]
+    parts, out, size, ring = [], [], 0, 0
+    for li, (g, cin, cout, d, span, wo, bo, _) in enumerate(layers):
+        w = wts[wo:wo + g * kk * cin * cout].reshape(g, kk * cin, cout)
+        b = wts[bo:bo + g * cout].reshape(g, cout)
+        if li == 0:  # one group: the live net's half of the outputs
+            half = cout // 2
+            w, b, cout = w[:, :, gi * half:(gi + 1) * half], b[:, gi * half:(gi + 1) * half], half
+        else:
+            w, b = w[gi:gi + 1], b[gi:gi + 1]
+        out.append([1, cin, cout, d, span, size, size + w.size, ring])
+        parts += [np.ascontiguousarray(w).reshape(-1), b.reshape(-1)]
+        size += w.size + b.size
+        ring += span * cin
+    n_feat = head_w.shape[1] // 2
+    return (np.concatenate(parts).astype(np.float32), out,
+            np.ascontiguousarray(head_w[:, gi * n_feat:(gi + 1) * n_feat]), ring)
+
+
 def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     """The C runtime of a residual model (a :class:`~tcn_ahrs.model.ahrs.LearnedAHRS` with
     ``loop: backbone``): {"h": header text, "c": source text, "info": sizes}."""
@@ -74,20 +120,24 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     c = int(model.axes)
     use_mag = bool(loop.use_mag) and c == 9
     wts, head_w, head_b, ints, n_ring, n_trust = _network_arrays(model)
-    kk, nl, n_feat, n_head = ints[1], ints[2], ints[6], ints[7]
+    kk, nl = ints[1], ints[2]
     layers = [ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * i:LAYOUT_HEADER + LAYOUT_PER_LAYER * (i + 1)] for i in range(nl)]
-    width = max([c, n_feat] + [g * cout for g, _, cout, *_ in layers] + [cin * g for g, cin, *_ in layers])
     # weights tap-major per group, (groups, K c_in, c_out): conv_layer's layout
     wt = wts.copy()
-    calls = []
-    for li, (g, cin, cout, d, span, wo, bo, ro) in enumerate(layers):
+    for g, cin, cout, d, span, wo, bo, ro in layers:
         n_tap = kk * cin
         wt[wo:wo + g * cout * n_tap] = wts[wo:wo + g * cout * n_tap].reshape(g, cout, n_tap).transpose(0, 2, 1).reshape(-1)
+    live = live_networks(model)
+    wts, layers, head_w, n_ring = _keep_networks(wt, layers, head_w, kk, live)
+    nl, n_head = len(layers), head_w.shape[0]
+    n_feat = head_w.shape[1]
+    width = max([c, n_feat] + [g * cout for g, _, cout, *_ in layers] + [cin * g for g, cin, *_ in layers])
+    calls = [] if layers else ["    (void)st; (void)out;  /* both networks are off (live_networks): the backbone alone */"]
+    for li, (g, cin, cout, d, span, wo, bo, ro) in enumerate(layers):
         calls.append(f"    /* layer {li}: {g} group(s), {cin} -> {cout} channels, dilation {d} */\n"
                      f"    conv_layer(st->ring + {ro}, st->pos[{li}], h, out, {g}, {cin}, {cout}, {d}, {span}, {wo}, {bo});\n"
                      f"    st->pos[{li}] = st->pos[{li}] + 1 == {span} ? 0 : st->pos[{li}] + 1;\n"
                      f"    for (i = 0; i < {g * cout}; i++) h[i] = out[i];")
-    wts = wt
     up = name.upper()
     p = list(loop.params.vector())
     s0 = K.initial_state(loop.params)
@@ -114,7 +164,8 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
         return re.sub(r"@(\w+)@", lambda mm: subst[mm.group(1)], text)
 
     info = {"axes": c, "use_mag": use_mag, "weights_float32": int(wts.size), "head_values": int(head_w.size + head_b.size),
-            "ring_floats": n_ring, "layers": layers, "weight_bytes": int(wts.size * 4),
+            "ring_floats": n_ring, "layers": layers, "weight_bytes": int(wts.size * 4) if layers else 0,
+            "live_networks": list(live),
             "head_bytes_double": int((head_w.size + head_b.size) * 8)}
     return {"h": fill(template("model.h.in")), "c": fill(template("model.c.in")), "info": info}
 
