@@ -98,13 +98,18 @@ def general(name, ckpt, lodo_json, tr_json, log=None):
 def main(name, ckpt, cv_json, tr_json, log=None):
     if name.startswith("general"):
         return general(name, ckpt, cv_json, tr_json, log)
+    from tcn_ahrs.conf import CONF_DIR
+
     meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)
     model = model_from_checkpoint(ckpt)
     res = meta["model"].get("residual", {})
     knobs = {k: v for k, v in res.items() if k != "backbone"}
     data = Path(ckpt).read_bytes()
+    # the experiment: <name>.yaml where it exists (euroc6_small), else <name>_res (euroc6)
+    exp = name if (Path(CONF_DIR) / "experiment" / f"{name}.yaml").is_file() else f"{name}_res"
+    channels = (meta["model"].get("tcn") or {}).get("channels")
     out = [f"# `{Path(ckpt).name}` — model card\n",
-           f"- **Model**: learned residuals on the VQF-grade backbone (`experiment={name}_res`, `model=residual`), "
+           f"- **Model**: learned residuals on the VQF-grade backbone (`experiment={exp}`, channels {channels}), "
            f"{meta['layout']['axes']}-axis, {model.num_parameters():,} parameters (two causal TCNs, receptive field "
            f"{model.receptive_field} samples at {meta['layout'].get('rate_hz') or 0:.1f} Hz).",
            f"- **Backbone knobs** (chosen on the training recordings): `{res.get('backbone')}`; bias state starts at "
@@ -114,9 +119,9 @@ def main(name, ckpt, cv_json, tr_json, log=None):
            "fixed schedule's last epoch ships; nothing held out, nothing selected.",
            f"- **Size / sha256**: {len(data) / 1e6:.2f} MB, `{hashlib.sha256(data).hexdigest()}`"]
     out += cost_lines(model, log)
-    out += ["", "```bash", f"python scripts/train.py experiment={name}_res train.all_recordings=true run_dir=runs/release/{name}",
+    out += ["", "```bash", f"python scripts/train.py experiment={exp} train.all_recordings=true run_dir=runs/release/{name}",
             f"python scripts/release_checkpoint.py runs/release/{name}/checkpoints/last.ckpt checkpoints/{name}.ckpt", "```", "",
-            f"## Nested folds (`python scripts/crossval.py experiment={name}_res`), mean AAE / inclination, degrees", "",
+            f"## Nested folds (`python scripts/crossval.py experiment={exp}`), mean AAE / inclination, degrees", "",
             "| outer fold | learned | VQF | best classical (AAE) | best inclination | never worse? |", "|---|---|---|---|---|---|"]
     for fold, l, v, best, b, bi, i, ok in rows(json.loads(Path(cv_json).read_text())):
         vq = f"{v['aae_deg']:.2f} / {v['inclination_deg']:.2f}" if v else "–"

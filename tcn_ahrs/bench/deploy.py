@@ -92,6 +92,7 @@ def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
             warnings.simplefilter("ignore")
             rows += _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp, p)
             rows += _peers(imu, dt, rate, n, warm)
+            models = _c_models(p.get("c_models") or [], imu, dt, q0, n + warm, tmp) if p.get("c", True) else []
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     vqf_loop = next((r for r in rows if r["name"].startswith("VQF updateBatch")), None)
@@ -110,8 +111,46 @@ def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
         goals["riann_step_vs_c_native_loop"] = riann["median_us"] / c_native["per_sample_us"]
     if c_step and riann:
         goals["riann_step_vs_c_step"] = riann["median_us"] / c_step["median_us"]
+    from ..export.c.runtime import live_networks
+
     return {"ckpt": ckpt, "axes": axes, "rate_hz": rate, "rows": rows, "goals": goals,
-            "footprint": footprint_rows(p.get("footprint_glob") or "checkpoints/*.ckpt")}
+            "live_networks": list(live_networks(model)) if getattr(model, "backbone", None) is not None else [],
+            "c_models": models, "footprint": footprint_rows(p.get("footprint_glob") or "checkpoints/*.ckpt")}
+
+
+def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path) -> List[Dict[str, Any]]:
+    """Each checkpoint's C loop (float build, -O2 and -march=native) on the same samples (its
+    axes' columns) beside VQF's C++ updateBatch of the same axes, in this run."""
+    from ..checkpoint import model_from_checkpoint
+    from ..export.c import CRuntime, compile_c, export_c
+    from ..export.c.runtime import live_networks
+
+    out = []
+    for path in paths:
+        row: Dict[str, Any] = {"ckpt": str(path)}
+        try:
+            f = _found(path)
+            model = model_from_checkpoint(f).eval()
+            axes = int(model.axes)
+            x = np.ascontiguousarray(imu[:, :axes], dtype=np.float32)
+            gen = export_c(f, tmp, "cm", overwrite=True)
+            row.update(axes=axes, live_networks=list(live_networks(model)))
+            for tag, flags in (("O2", ()), ("native", ("-march=native",))):
+                rt = CRuntime(compile_c(gen["c"], tmp / f"libcm_{tag}.so", "float", None, flags), "cm", axes)
+                row[f"c_{tag}_us"] = _loop("", lambda: (rt.reset(q0), rt.run(x, dt)), total)["per_sample_us"]
+                row["state_bytes"] = rt.state_size
+            from vqf import VQF
+
+            g, a = np.ascontiguousarray(imu[:, 0:3]), np.ascontiguousarray(imu[:, 3:6])
+            mg = np.ascontiguousarray(imu[:, 6:9]) if axes == 9 else None
+            row["vqf_us"] = _loop("", (lambda: VQF(dt).updateBatch(g, a, mg)) if mg is not None
+                                  else (lambda: VQF(dt).updateBatch(g, a)), total)["per_sample_us"]
+            row["c_vs_vqf"] = row["c_O2_us"] / row["vqf_us"]
+            row["c_native_vs_vqf"] = row["c_native_us"] / row["vqf_us"]
+        except Exception as e:  # noqa: BLE001 - a missing compiler, checkpoint or vqf: the row says why
+            row["skipped"] = f"{type(e).__name__}: {e}"
+        out.append(row)
+    return out
 
 
 def _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp: Path, p) -> List[Dict[str, Any]]:
@@ -240,6 +279,23 @@ def markdown(res: Dict[str, Any]) -> str:
                   f"-march=native (goal ≤ 5); RIANN step / C loop = {g.get('riann_step_vs_c_loop', nan):.1f} at -O2, "
                   f"{g.get('riann_step_vs_c_native_loop', nan):.1f} with -march=native (goal ≥ 10); RIANN step / "
                   f"C step through ctypes = {g.get('riann_step_vs_c_step', nan):.1f}."]
+    if res.get("live_networks") is not None:
+        lines += ["", f"Networks in `{Path(res['ckpt']).name}`'s C runtime: {', '.join(res['live_networks']) or 'none'} "
+                  "(a network its inference knobs switch off is not generated: `tcn_ahrs.export.c.runtime.live_networks`)."]
+    if res.get("c_models"):
+        lines += ["", "The C loop (float build) of other checkpoints, same run, same samples, beside VQF's C++ loop of "
+                  "the same axes (riann_step / C = RIANN's step above over the C loop):", "",
+                  "| checkpoint | axes | networks | C -O2 (µs) | C -march=native (µs) | VQF C++ (µs) | C / VQF (-O2, native) "
+                  "| RIANN / C (-O2) | sizeof(state) (B) |", "|---|---|---|---|---|---|---|---|---|"]
+        riann = next((r["median_us"] for r in res["rows"] if r["name"].startswith("RIANN") and "median_us" in r), None)
+        for r in res["c_models"]:
+            if "skipped" in r:
+                lines.append(f"| {Path(r['ckpt']).stem} | skipped: {r['skipped']} | | | | | | | |")
+                continue
+            rr = f"{riann / r['c_O2_us']:.0f}" if riann else "–"
+            lines.append(f"| {Path(r['ckpt']).stem} | {r['axes']} | {', '.join(r['live_networks']) or 'none'} | "
+                         f"{r['c_O2_us']:.2f} | {r['c_native_us']:.2f} | {r['vqf_us']:.2f} | {r['c_vs_vqf']:.1f}, "
+                         f"{r['c_native_vs_vqf']:.1f} | {rr} | {r['state_bytes']} |")
     c_rows = [r for r in res["rows"] if "state_bytes" in r]
     if c_rows:
         lines += ["", f"sizeof(state) of the C runtime: {c_rows[0]['state_bytes']} B (float backbone, the default), "
