@@ -91,8 +91,9 @@ def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")
             rows += _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp, p)
-            rows += _peers(imu, dt, rate, n, warm)
+            # before the peers: onnxruntime's (RIANN's) idle threads must not share the cores
             models = _c_models(p.get("c_models") or [], imu, dt, q0, n + warm, tmp) if p.get("c", True) else []
+            rows += _peers(imu, dt, rate, n, warm)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     vqf_loop = next((r for r in rows if r["name"].startswith("VQF updateBatch")), None)
@@ -126,17 +127,18 @@ def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path) -> List[Dict[str,
     from ..export.c.runtime import live_networks
 
     out = []
-    for path in paths:
+    for i, path in enumerate(paths):
         row: Dict[str, Any] = {"ckpt": str(path)}
         try:
             f = _found(path)
             model = model_from_checkpoint(f).eval()
             axes = int(model.axes)
             x = np.ascontiguousarray(imu[:, :axes], dtype=np.float32)
-            gen = export_c(f, tmp, "cm", overwrite=True)
+            name = f"cm{i}"  # one library file per model and build: ctypes reuses a loaded path
+            gen = export_c(f, tmp, name, overwrite=True)
             row.update(axes=axes, live_networks=list(live_networks(model)))
             for tag, flags in (("O2", ()), ("native", ("-march=native",))):
-                rt = CRuntime(compile_c(gen["c"], tmp / f"libcm_{tag}.so", "float", None, flags), "cm", axes)
+                rt = CRuntime(compile_c(gen["c"], tmp / f"lib{name}_{tag}.so", "float", None, flags), name, axes)
                 row[f"c_{tag}_us"] = _loop("", lambda: (rt.reset(q0), rt.run(x, dt)), total)["per_sample_us"]
                 row["state_bytes"] = rt.state_size
             from vqf import VQF
@@ -284,7 +286,7 @@ def markdown(res: Dict[str, Any]) -> str:
                   "(a network its inference knobs switch off is not generated: `tcn_ahrs.export.c.runtime.live_networks`)."]
     if res.get("c_models"):
         lines += ["", "The C loop (float build) of other checkpoints, same run, same samples, beside VQF's C++ loop of "
-                  "the same axes (riann_step / C = RIANN's step above over the C loop):", "",
+                  "the same axes:", "",
                   "| checkpoint | axes | networks | C -O2 (µs) | C -march=native (µs) | VQF C++ (µs) | C / VQF (-O2, native) "
                   "| RIANN / C (-O2) | sizeof(state) (B) |", "|---|---|---|---|---|---|---|---|---|"]
         riann = next((r["median_us"] for r in res["rows"] if r["name"].startswith("RIANN") and "median_us" in r), None)
