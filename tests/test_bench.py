@@ -94,3 +94,32 @@ def test_broad_epoch_constant_fallback():
     # 16 recordings of ~37.6 k samples: (37573 - 1000) // 500 + 1 = 74 windows each, 32 per step
     assert e["windows"] == 16 * 74 and e["steps"] == math.ceil(16 * 74 / 32)
     assert "constant" in e["source"]
+
+
+def test_deploy_section_rows_goals_and_footprint(tmp_path):
+    """The deploy section at tiny sizes (ONNX and torch.export off): the C rows of the default
+    checkpoint (broad9: both networks off, the backbone alone), the other checkpoints' C loops
+    beside VQF's loop of their axes, the goals and the footprint of every shipped checkpoint."""
+    import shutil
+
+    from tcn_ahrs.bench.deploy import bench_deploy, markdown
+
+    if shutil.which("cc") is None and shutil.which("gcc") is None:
+        pytest.skip("no C compiler")
+    pytest.importorskip("vqf")
+    res = bench_deploy({"ckpt": "checkpoints/broad9.ckpt", "rate": 285.71, "samples": 40, "warmup": 5,
+                        "slow_steps": 3, "c": True, "onnx": False, "export": False,
+                        "footprint_glob": "checkpoints/*.ckpt",
+                        "c_models": ["checkpoints/oxiod9.ckpt", "checkpoints/euroc6_small.ckpt", "checkpoints/nope.ckpt"]})
+    names = [r["name"] for r in res["rows"]]
+    assert "C runtime run (float backbone, -O2)" in names and "VQF updateBatch (C++ loop)" in names
+    assert res["live_networks"] == []
+    assert _finite_pos(res["goals"]["c_loop_vs_vqf_cpp"])
+    ox, small, nope = res["c_models"]
+    assert ox["axes"] == 9 and ox["live_networks"] == ["gyro", "trust"] and _finite_pos(ox["c_vs_vqf"])
+    assert small["axes"] == 6 and small["state_bytes"] < 64 * 1024 < ox["state_bytes"]  # each model its own library
+    assert "no checkpoint" in nope["skipped"]
+    foot = {f["checkpoint"]: f for f in res["footprint"]}
+    assert foot["broad9"]["c_ring_bytes"] == 0 and foot["euroc6_small"]["c_ring_bytes"] < foot["euroc6"]["c_ring_bytes"]
+    md = markdown(res)
+    assert "| euroc6_small | 6 | gyro, trust |" in md and "Networks in `broad9.ckpt`'s C runtime: none" in md
