@@ -295,6 +295,7 @@ def footprint_rows(pattern: str) -> List[Dict[str, Any]]:
             info = generate_c(model, "m")["info"]
             row["c_weight_bytes"] = int(info["weight_bytes"] + info["head_bytes_double"])
             row["c_ring_bytes"] = 4 * int(info["ring_floats"])
+            row["c_flops_per_sample"] = int(info["flops_per_sample"])
         out.append(row)
     return out
 
@@ -339,9 +340,9 @@ def markdown(res: Dict[str, Any]) -> str:
     if c_rows:
         lines += ["", f"sizeof(state) of the C runtime: {c_rows[0]['state_bytes']} B (float backbone, the default), "
                   f"{c_rows[1]['state_bytes'] if len(c_rows) > 1 else '–'} B (double)."]
-    lines += ["", "| checkpoint | axes | parameters | C weights (B) | C ring buffers (B) | FLOPs / sample |",
-              "|---|---|---|---|---|---|"]
+    lines += ["", "| checkpoint | axes | parameters | FLOPs / sample (networks) | C weights (B) | C ring buffers (B) "
+              "| C FLOPs / sample (networks it runs) |", "|---|---|---|---|---|---|---|"]
     for f in res.get("footprint") or []:
-        lines.append(f"| {f['checkpoint']} | {f['axes']} | {f['parameters']} | {f.get('c_weight_bytes', '–')} | "
-                     f"{f.get('c_ring_bytes', '–')} | {f['flops_per_sample']} |")
+        lines.append(f"| {f['checkpoint']} | {f['axes']} | {f['parameters']} | {f['flops_per_sample']} | "
+                     f"{f.get('c_weight_bytes', '–')} | {f.get('c_ring_bytes', '–')} | {f.get('c_flops_per_sample', '–')} |")
     return "\n".join(lines)

@@ -166,6 +166,9 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     info = {"axes": c, "use_mag": use_mag, "weights_float32": int(wts.size), "head_values": int(head_w.size + head_b.size),
             "ring_floats": n_ring, "layers": layers, "weight_bytes": int(wts.size * 4) if layers else 0,
             "live_networks": list(live),
+            # multiply-adds of the generated networks x 2 (the GELUs and the filter not counted)
+            "flops_per_sample": int(sum(2 * g * kk * cin * cout for g, cin, cout, *_ in layers)
+                                    + (2 * head_w.size if layers else 0)),
             "head_bytes_double": int((head_w.size + head_b.size) * 8)}
     return {"h": fill(template("model.h.in")), "c": fill(template("model.c.in")), "info": info}
 
