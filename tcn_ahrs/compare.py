@@ -132,7 +132,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
             ablation_ckpts: Optional[Mapping[str, str]] = None, out_dir=None,
             tune_max_seconds_per_recording: Optional[float] = 60.0, tune_lead_seconds: float = 10.0,
             tune_recordings: Optional[int] = None, tune_max_batch: int = 128, dataset: Optional[str] = None,
-            plots: bool = False, trajectories: bool = False, align: bool = True, device: str = "cpu",
+            plots: bool = False, trajectories: bool = False, align="protocol", device: str = "cpu",
             reanchor: Optional[int] = None, on_calibrated: Optional[Mapping[str, str]] = None,
             verbose: bool = False, progress: bool = True, extra: Optional[dict] = None) -> dict:
     """Build, tune, evaluate, write tables.
@@ -347,7 +347,7 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
                   tune_max_batch=int(cfg.get("tune_max_batch", _C.tune_max_batch)),
                   dataset=str(cfg.data.name), plots=bool(cfg.get("plots", _C.plots)),
                   trajectories=bool(cfg.get("trajectories", _C.trajectories)),
-                  align=bool(cfg.get("align", _C.align)),
+                  align=cfg.get("align", _C.align),
                   device=str(cfg.get("device", _C.device)), verbose=bool(cfg.get("verbose", _C.verbose)),
                   reanchor=cfg.get("reanchor"), on_calibrated=plain(cfg.get("on_calibrated")) or None,
                   extra={"split": split, "tune_split": tune_split if cfg.get("tune") else None,

@@ -66,11 +66,9 @@ def tune_backbone(sequences: Sequence[ImuSequence], axes: int,
 
 def _tune_never_worse(est, seqs: Sequence[ImuSequence], grid: Mapping[str, Sequence]) -> Tuple[Dict[str, float], List[dict]]:
     """:func:`tune_backbone`'s "never_worse" criterion (point 0 = the reference)."""
-    from .metrics import broad_errors
-
     points = grid_combinations(grid)
     aae = score_points(est, seqs, points, "aae")
-    incl = score_points(est, seqs, points, lambda q, e, m: broad_errors(q, e, m, "6d")["inclination_deg"])
+    incl = score_points(est, seqs, points, "inclination")
     part_of = np.array([s.name.split("/", 1)[0] if "/" in s.name else "" for s in seqs])
     crit = np.zeros(len(points))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -174,7 +172,8 @@ def select_residual_knobs(model, sequences: Sequence[ImuSequence], grid: Optiona
     """The inference knobs of a trained residual model (``loop: backbone``), chosen on
     ``sequences`` (held-out recordings with ground truth): the point whose worse ratio of mean AAE
     and mean inclination to the tuned backbone's (``correct`` 1, no residual) is lowest, both as
-    the evaluation runner scores them (start at the first valid ground truth, AAE aligned there).
+    the evaluation runner scores them (start at the first valid ground truth; the yardstick of
+    :mod:`tcn_ahrs.metrics`).
     A point replaces the tuned backbone only if its criterion is below ``1 − margin`` (``rule``
     "both": better by the margin in AAE and in inclination) — or, ``rule`` "either", if it is no
     worse in either and better by the margin in one (a general model: over many devices the
@@ -183,7 +182,8 @@ def select_residual_knobs(model, sequences: Sequence[ImuSequence], grid: Optiona
     Sets the chosen knobs on ``model``; returns them and the table (best first)."""
     from .estimators.base import initial_state
     from .estimators.learned import model_input
-    from .metrics import broad_errors, sequence_metrics
+    from .filters.common import heading_ref_for
+    from .metrics import sequence_metrics
 
     if model.backbone is None:
         raise ValueError("select_residual_knobs: the model has no backbone (model.loop must be 'backbone')")
@@ -208,13 +208,10 @@ def select_residual_knobs(model, sequences: Sequence[ImuSequence], grid: Optiona
             c = dict(cal)
             err = cal["gyro_error"].clamp(-p["gyro_clip"], p["gyro_clip"])
             c["gyro"] = imu[..., 0:3] - err
-            out = model.backbone.run(c, imu, dt, q0, k0)
+            out = model.backbone.run(c, imu, dt, q0, k0, heading_ref_for("auto", s.meta))
             quat = np.concatenate([np.repeat(np.asarray(q0)[None], k0, 0), out["quat"].numpy()], 0)
             m = sequence_metrics(s, quat, axes=model.axes)
-            incl = m.get("inclination_deg")
-            if incl is None:
-                incl = broad_errors(s.quat, quat, s.scored(), "6d")["inclination_deg"]
-            scores[i, j] = (m["aae_deg"], incl)
+            scores[i, j] = (m["aae_deg"], m["inclination_deg"])
     # never worse in either number: the worse of the two ratios to the tuned backbone alone
     # (point 0: no residual, full correction), so a point that buys heading with inclination
     # does not win; a point that diverges anywhere cannot win

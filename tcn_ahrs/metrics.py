@@ -11,12 +11,28 @@ Scored samples
     outside the mask never influence a number (ground truth there may be NaN). ``mask=None``
     means every sample with finite ground truth. With no scored sample the metrics are NaN.
 
-Alignment (``align=True``, used by AAE and AYE)
-    The estimate is rotated by ONE constant navigation-frame rotation (left multiplication)
-    so that it equals ground truth at the first scored sample ``k0``:
-    ``R_est'[k] = R_gt[k0] R_est[k0]^T R_est[k]``. This removes the initial-attitude
-    difference (e.g. when ground truth starts later than the IMU), nothing else.
-    ``align=False`` scores the estimate as it is.
+The yardstick (``align="protocol"``, the default everywhere; :class:`Yardstick`)
+    One protocol for every method, so that no verdict rests on how an estimate starts:
+
+    * every estimator starts at the ground-truth attitude of the first valid sample where its
+      API allows it (the runner's ``init_quat``; VQF through its state); the first
+      ``settle_s`` seconds after that sample are scored for nobody, so an estimator that
+      initialises itself (RIANN) and converges is not charged for its start;
+    * heading is aligned ONCE about the navigation vertical — the circular mean of the
+      per-sample heading errors over the scored samples (:func:`align_heading`) — and the
+      inclination stays absolute: a constant tilt error is always charged;
+    * 9-axis estimates on data whose ground-truth north is magnetic north
+      (``seq.meta["heading_reference"] == "magnetic_north"``: BROAD, the simulator) are not
+      aligned at all: the magnetometer makes heading observable, so it is scored as it is.
+
+Alignments (``align=``, used by AAE, AYE and AHE)
+    ``"heading"``: one rotation about the vertical (above). ``"first"`` (``True``, the
+    project's metric before 2026-12-05): one full navigation-frame rotation so that the
+    estimate equals ground truth at the first scored sample ``k0``,
+    ``R_est'[k] = R_gt[k0] R_est[k0]^T R_est[k]`` — it freezes the first scored sample's
+    error (inclination included) into the whole recording. ``"none"`` (``False``): the
+    estimate as it is. ``"protocol"``: the yardstick's choice for the recording and axes
+    (only where the recording is known: :func:`sequence_metrics`, :func:`scored_metric`).
 
 AAE — absolute attitude error (paper Eq. 29)
     ``AAE = sqrt( mean_k || Log(R_gt[k]^T R_est'[k]) ||^2 )`` over scored samples, in degrees:
@@ -114,6 +130,82 @@ def _rms(x: np.ndarray) -> float:
 # ---------------------------------------------------------------------------
 
 
+ALIGNMENTS = ("heading", "first", "none")
+"""The alignments of one estimate (module docstring); ``"protocol"`` resolves to one of them."""
+
+
+@dataclass(frozen=True)
+class Yardstick:
+    """The scoring protocol applied identically to every method (module docstring).
+
+    settle_s: seconds after the first valid ground-truth sample that nobody is scored on
+              (the slowest default inclination correction here, VQF's ``tau_acc``, is 3 s; 2 s
+              lets a self-initialised filter converge without hiding a wrong steady state).
+    """
+
+    settle_s: float = 2.0
+
+    def mask(self, seq) -> np.ndarray:
+        """(N,) bool: ``seq.scored()`` without the first ``settle_s`` seconds after the first
+        valid ground truth; ``seq.scored()`` itself where that would leave nothing."""
+        m = seq.scored()
+        if not seq.quat_valid.any() or self.settle_s <= 0:
+            return m
+        t0 = seq.time[int(np.argmax(seq.quat_valid))]
+        settled = m & (seq.time >= t0 + self.settle_s)
+        return settled if settled.any() else m
+
+    @staticmethod
+    def alignment(seq, axes: int) -> str:
+        """``"none"`` for a 9-axis estimate on data whose ground truth north is magnetic, else
+        ``"heading"``."""
+        if axes == 9 and seq.has_mag and seq.meta.get("heading_reference") == "magnetic_north":
+            return "none"
+        return "heading"
+
+
+YARDSTICK = Yardstick()
+
+
+def _alignment(align) -> str:
+    if align is True:
+        return "first"
+    if align is False or align is None:
+        return "none"
+    if align not in ALIGNMENTS:
+        raise ValueError(f"align: expected one of {ALIGNMENTS} (or True/False), got {align!r}; "
+                         "'protocol' needs the recording: sequence_metrics or scored_metric")
+    return align
+
+
+def align_heading(q_gt, q_est, mask=None) -> np.ndarray:
+    """The estimate rotated once about the navigation vertical by ``delta``, the circular mean
+    of the per-sample heading errors over the scored samples: ``q_est' = q_z(delta) ⊗ q_est``.
+    Inclination errors are unchanged (a rotation about the vertical commutes with the
+    heading/inclination split of the earth-frame error). Returns (N, 4) numpy float64."""
+    qg, qe = _as_quat(q_gt, "quat_gt"), _as_quat(q_est, "quat_est")
+    m = _scored_mask(qg, qe, mask)
+    if not m.any():
+        return qe.numpy().copy()
+    h = broad_error_angles(qg[m], qe[m])["heading"]
+    delta = math.atan2(float(np.mean(np.sin(h))), float(np.mean(np.cos(h))))
+    # q_err' = q_gt ⊗ q_est'^-1 = q_err ⊗ q_z(-delta): every heading error minus delta
+    qz = torch.tensor([math.cos(delta / 2), 0.0, 0.0, math.sin(delta / 2)], dtype=torch.float64)
+    return so3.quat_normalize(so3.quat_mul(qz.expand_as(qe), qe)).numpy()
+
+
+def aligned(q_gt, q_est, mask=None, align="heading") -> np.ndarray:
+    """The estimate under one of :data:`ALIGNMENTS` (or True = "first", False = "none")."""
+    how = _alignment(align)
+    if how == "heading":
+        return align_heading(q_gt, q_est, mask)
+    if how == "first":
+        return align_to_first(q_gt, q_est, mask)
+    qg, qe = _as_quat(q_gt, "quat_gt"), _as_quat(q_est, "quat_est")
+    _scored_mask(qg, qe, mask)
+    return qe.numpy().copy()
+
+
 def align_to_first(q_gt, q_est, mask=None) -> np.ndarray:
     """The estimate rotated by one constant navigation-frame rotation so that it equals
     ground truth at the first scored sample ``k0``: ``q_est' = q_gt[k0] ⊗ q_est[k0]^-1 ⊗ q_est``.
@@ -129,23 +221,19 @@ def align_to_first(q_gt, q_est, mask=None) -> np.ndarray:
     return so3.quat_normalize(so3.quat_mul(corr.expand_as(qe), qe)).numpy()
 
 
-def attitude_errors(q_gt, q_est, mask=None, align: bool = True) -> Tuple[np.ndarray, np.ndarray]:
+def attitude_errors(q_gt, q_est, mask=None, align="heading") -> Tuple[np.ndarray, np.ndarray]:
     """Per-sample errors in radians: ``angle`` (N,) = ||Log(R_gt^T R_est')|| and ``yaw`` (N,) =
     wrap(yaw(R_est') - yaw(R_gt)) (signed). NaN where ground truth is missing; the alignment
-    (if ``align``) uses the first sample of ``mask``."""
+    (:func:`align`) uses the samples of ``mask``."""
     qg, qe = _as_quat(q_gt, "quat_gt"), _as_quat(q_est, "quat_est")
-    if align:
-        qe = torch.as_tensor(align_to_first(qg, qe, mask))
-    else:
-        _scored_mask(qg, qe, mask)
-    qe = so3.quat_normalize(qe)
+    qe = so3.quat_normalize(torch.as_tensor(aligned(qg, qe, mask, align)))
     d = so3.quat_mul(so3.quat_conj(qg), qe)  # R_gt^T R_est: error in the body frame
     angle = torch.linalg.norm(so3.quat_log(d), dim=-1)
     dyaw = so3.wrap_angle(so3.yaw(so3.quat_to_matrix(qe)) - so3.yaw(so3.quat_to_matrix(qg)))
     return angle.numpy(), dyaw.numpy()
 
 
-def aae(q_gt, q_est, mask=None, align: bool = True) -> float:
+def aae(q_gt, q_est, mask=None, align="heading") -> float:
     """Absolute attitude error (paper Eq. 29), degrees: RMS over scored samples of
     ``||Log(R_gt^T R_est')||``."""
     qg, qe = _as_quat(q_gt, "quat_gt"), _as_quat(q_est, "quat_est")
@@ -154,19 +242,18 @@ def aae(q_gt, q_est, mask=None, align: bool = True) -> float:
     return _rms(angle[m]) * RAD2DEG
 
 
-def ahe(q_gt, q_est, mask=None, align: bool = True) -> float:
+def ahe(q_gt, q_est, mask=None, align="heading") -> float:
     """Absolute heading error, degrees: RMS over scored samples of the heading part (rotation
     about the navigation vertical) of the earth-frame error of the aligned estimate."""
     qg, qe = _as_quat(q_gt, "quat_gt"), _as_quat(q_est, "quat_est")
     m = _scored_mask(qg, qe, mask)
     if not m.any():
         return float("nan")
-    if align:
-        qe = torch.as_tensor(align_to_first(qg, qe, m))
+    qe = torch.as_tensor(aligned(qg, qe, m, align))
     return _rms(broad_error_angles(qg[m], qe[m])["heading"]) * RAD2DEG
 
 
-def aye(q_gt, q_est, mask=None, align: bool = True) -> float:
+def aye(q_gt, q_est, mask=None, align="heading") -> float:
     """Absolute yaw error (paper Eq. 30), degrees: RMS over scored samples of the wrapped
     z-y'-x'' yaw difference."""
     qg, qe = _as_quat(q_gt, "quat_gt"), _as_quat(q_est, "quat_est")
@@ -210,9 +297,7 @@ def broad_errors(q_gt, q_est, mask=None, mode: str = "9d") -> Dict[str, float]:
     if mode == "6d":
         h = broad_error_angles(qg[m], qe[m])["heading"]
         offset = math.atan2(float(np.mean(np.sin(h))), float(np.mean(np.cos(h))))
-        # q_est' = q_z(offset) ⊗ q_est  =>  q_err' = q_err ⊗ q_z(-offset): heading - offset
-        qz = torch.tensor([math.cos(offset / 2), 0.0, 0.0, math.sin(offset / 2)], dtype=torch.float64)
-        qe = so3.quat_mul(qz.expand_as(qe), qe)
+        qe = torch.as_tensor(align_heading(qg, qe, m))
     e = broad_error_angles(qg[m], qe[m])
     return {
         "total_deg": _rms(e["total"]) * RAD2DEG,
@@ -227,20 +312,24 @@ def broad_errors(q_gt, q_est, mask=None, mode: str = "9d") -> Dict[str, float]:
 # ---------------------------------------------------------------------------
 
 
-def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align: bool = True) -> Dict[str, float]:
+def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align="protocol",
+                     yardstick: Yardstick = YARDSTICK) -> Dict[str, float]:
     """All metrics of one estimate on one :class:`~tcn_ahrs.sequence.ImuSequence`.
 
     Args:
-        seq:      recording with ground truth; scored samples = ``seq.scored()``.
+        seq:      recording with ground truth; scored samples = ``seq.scored()`` (under the
+                  protocol without the first ``yardstick.settle_s`` seconds).
         quat_est: (N, 4) estimated ``nav_from_body`` (w,x,y,z).
         axes:     9 if the estimate used the magnetometer, 6 if not; ``None``: ``seq.num_axes``.
-        align:    alignment at the first scored sample for AAE/AYE (BROAD errors never align).
+        align:    ``"protocol"`` (the yardstick, module docstring) or one of :data:`ALIGNMENTS`
+                  (``True``/``False``: ``"first"``/``"none"``) for AAE/AYE/AHE; BROAD's errors
+                  are never aligned (6-axis: heading offset removed).
     Returns:
-        ``n_scored``, ``aae_deg``, ``aye_deg``, ``ahe_deg``, every registered extra metric
-        (:func:`register_metric`); plus BROAD's ``total_deg``, ``heading_deg``,
-        ``inclination_deg`` (and ``broad_mode``) when the recording has a magnetometer and
-        the estimate is 9-axis (``"9d"``), or when the recording carries a benchmark score mask
-        (BROAD) and the estimate is 6-axis (``"6d"``, heading offset removed).
+        ``n_scored``, ``aae_deg``, ``aye_deg``, ``ahe_deg``, ``inclination_deg`` (needs no
+        heading), every registered extra metric (:func:`register_metric`); plus BROAD's
+        ``total_deg``, ``heading_deg`` (and ``broad_mode``) when the recording has a
+        magnetometer and the estimate is 9-axis (``"9d"``), or when the recording carries a
+        benchmark score mask (BROAD) and the estimate is 6-axis (``"6d"``, heading offset removed).
     """
     if seq.quat is None:
         raise ValueError(f"{seq.source}: field 'quat': metrics need ground truth, recording {seq.name!r} has none")
@@ -250,7 +339,10 @@ def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align: bool = Tr
     qe = _as_quat(quat_est, f"quat_est of {seq.name}")
     if qe.shape[0] != len(seq):
         raise ValueError(f"quat_est: expected {len(seq)} samples for recording {seq.name!r}, got {qe.shape[0]}")
-    m = seq.scored()
+    if align == "protocol":
+        m, align = yardstick.mask(seq), yardstick.alignment(seq, axes)
+    else:
+        m = seq.scored()
     out: Dict[str, float] = {"n_scored": int(m.sum())}
     angle, dyaw = attitude_errors(seq.quat, qe, m, align)
     out["aae_deg"] = _rms(angle[m]) * RAD2DEG
@@ -265,11 +357,19 @@ def sequence_metrics(seq, quat_est, axes: Optional[int] = None, align: bool = Tr
         b = broad_errors(seq.quat, qe, m, mode)
         out.update(total_deg=b["total_deg"], heading_deg=b["heading_deg"], inclination_deg=b["inclination_deg"])
         out["broad_mode"] = mode
+    else:
+        out["inclination_deg"] = broad_errors(seq.quat, qe, m, "6d")["inclination_deg"]
     if _EXTRA:
         qe_np = qe.numpy()
         for metric in _EXTRA.values():
             out[metric.key] = float(metric.fn(seq.quat, qe_np, m, align))
     return out
+
+
+def scored_metric(seq, quat_est, axes: Optional[int] = None, key: str = "aae_deg", align="protocol") -> float:
+    """One number of :func:`sequence_metrics` (what the tuners minimise): the same protocol as
+    every table."""
+    return float(sequence_metrics(seq, quat_est, axes, align)[key])
 
 
 # ---------------------------------------------------------------------------

@@ -9,8 +9,8 @@ default are its ``tunable`` (with a ``default_grid``):
 * ``Madgwick``: ``beta`` (rad/s)
 * ``ESEKF`` / ``RobustESEKF``: ``accel_noise`` (m/s^2/sqrt(Hz)), ``mag_noise`` (rad/sqrt(Hz))
 
-The loss is the project's AAE (:func:`tcn_ahrs.metrics.aae`, ground truth, scored samples,
-aligned at the first scored sample), averaged over the recordings. All recordings x all
+The loss is the project's AAE scored as every table scores it (:func:`tcn_ahrs.metrics.scored_metric`,
+the yardstick of :mod:`tcn_ahrs.metrics`), averaged over the recordings. All recordings x all
 parameter points run in ONE batched filter call (the time loop is shared), in chunks of
 ``max_batch``; :func:`tune_method` tunes any registered method by name (the PyPI peers one run
 per point).
@@ -31,17 +31,18 @@ from .sequence import ImuSequence
 MetricFn = Callable[[np.ndarray, np.ndarray, np.ndarray], float]
 
 
-def _metric_fn(metric: Union[str, MetricFn]) -> MetricFn:
+def _metric_fn(metric: Union[str, MetricFn]) -> Callable:
+    """``fn(seq, quat, axes) -> float``: a metric name is scored by the yardstick of every table
+    (:func:`tcn_ahrs.metrics.scored_metric`: settling time, heading alignment, 9-axis on magnetic
+    north unaligned); a callable ``(q_gt, q_est, mask)`` gets the recording's scored samples."""
     if callable(metric):
-        return metric
+        return lambda seq, quat, axes: metric(seq.quat, quat, seq.scored())
     from . import metrics
 
-    try:
-        fn = getattr(metrics, metric)
-    except AttributeError:
-        raise ValueError(f"unknown metric {metric!r}: expected a function of tcn_ahrs.metrics "
-                         "(e.g. 'aae', 'aye') or a callable (q_gt, q_est, mask) -> float") from None
-    return lambda q_gt, q_est, mask: fn(q_gt, q_est, mask)
+    if f"{metric}_deg" not in metrics.metric_keys():
+        raise ValueError(f"unknown metric {metric!r}: expected a metric of tcn_ahrs.metrics without its _deg "
+                         "(e.g. 'aae', 'aye', 'inclination') or a callable (q_gt, q_est, mask) -> float")
+    return lambda seq, quat, axes: metrics.scored_metric(seq, quat, axes, f"{metric}_deg")
 
 
 def _initial_quats(seqs: Sequence[ImuSequence], init: str) -> List[Optional[np.ndarray]]:
@@ -78,7 +79,7 @@ def score_points(estimator: ClassicalEstimator, seqs: Sequence[ImuSequence], poi
         for j, s in enumerate(seqs):
             if s.scored().any():
                 for i in range(len(chunk)):
-                    out[start + i, j] = fn(s.quat, qn[i, j, :len(s)], s.scored())
+                    out[start + i, j] = fn(s, qn[i, j, :len(s)], min(estimator.axes, s.num_axes))
     return out
 
 
@@ -172,7 +173,7 @@ def tune_method(method: str, axes: int, sequences: Sequence[ImuSequence],
             if not s.scored().any():
                 continue
             try:
-                scores[i, j] = fn(s.quat, est.run(v, q0s[j]).quat, s.scored())
+                scores[i, j] = fn(s, est.run(v, q0s[j]).quat, v.num_axes)
             except (FloatingPointError, np.linalg.LinAlgError, ValueError) as e:
                 scores[i, j] = np.inf
                 warnings.warn(f"tuning {method}{axes}d {p} on {s.name}: {type(e).__name__}: {e}")

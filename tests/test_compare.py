@@ -76,7 +76,7 @@ def test_run_batch_equals_single_runs_with_padding(sims):
 def test_batched_tuning_matches_one_recording_at_a_time(sims):
     """The one tuner runs all clips x grid points in one padded call; each score equals the
     filter run on that recording alone with that point (different lengths: padding unscored)."""
-    from tcn_ahrs.metrics import aae
+    from tcn_ahrs.metrics import scored_metric
     from tcn_ahrs.tuning import tune_method
 
     clips = [sims[0], sims[1].slice(0, 700)]
@@ -86,7 +86,7 @@ def test_batched_tuning_matches_one_recording_at_a_time(sims):
     for row in table[:3]:
         for c in clips:
             alone = Madgwick(axes=6, **row["params"]).run(c.without_mag(), initial_quat(c)).quat
-            assert row["per_sequence"][c.name] == pytest.approx(aae(c.quat, alone, c.scored()), rel=1e-9)
+            assert row["per_sequence"][c.name] == pytest.approx(scored_metric(c, alone, 6), rel=1e-9)
 
 
 def test_tuning_clips_start_before_first_scored_sample(sims):

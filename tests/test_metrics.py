@@ -190,7 +190,7 @@ def test_sequence_metrics_keys_and_values():
     assert r_na["aye_deg"] == pytest.approx(5.0, abs=DEG_F64)
     seq6 = _seq(gt, mag=False)
     r = metrics.sequence_metrics(seq6, est)
-    assert set(r) == {"n_scored", "aae_deg", "aye_deg", "ahe_deg"}
+    assert set(r) == {"n_scored", "aae_deg", "aye_deg", "ahe_deg", "inclination_deg"}
 
 
 def test_heading_error_stays_defined_with_vertical_body_x_axis():

@@ -51,10 +51,10 @@ def test_raw_euroc_full_length():
     res = evaluate([RawIntegration()], seqs, plots=False, trajectories=False)
     rows = res["methods"]["Raw IMU"]["recordings"]
     for r in rows:
-        assert 85.0 < r["aae_deg"] < 150.0, r
+        assert 60.0 < r["aae_deg"] < 150.0, r  # the yardstick: heading aligned once (mean), so below the drift's end
         assert 60.0 < r["aye_deg"] < 150.0, r
         assert r["n_scored"] > 0.9 * r["n_samples"], r
-    assert 100.0 < res["methods"]["Raw IMU"]["mean"]["aae_deg"] < 135.0
+    assert 80.0 < res["methods"]["Raw IMU"]["mean"]["aae_deg"] < 135.0
 
 
 def test_raw_euroc_first_seconds():
@@ -71,12 +71,14 @@ def test_raw_broad_trials():
     res = evaluate([RawIntegration()], seqs, plots=False, trajectories=False)
     for r in res["methods"]["Raw IMU"]["recordings"]:
         assert r["axes"] == 9 and r["broad_mode"] == "9d"
-        assert 12.0 < r["aae_deg"] < 30.0, r            # measured 18.8 / 21.1
+        # 9 axes on magnetic-north ground truth: scored unaligned (the yardstick), = total
+        assert 12.0 < r["aae_deg"] < 40.0, r            # measured 18.8 / 21.1 aligned at the first sample
         assert 15.0 < r["total_deg"] < 40.0, r          # measured 32.0 / 31.0 (never aligned)
         assert r["inclination_deg"] < r["total_deg"] + 1e-9
         assert r["heading_deg"] < r["total_deg"] + 1e-9
     for seq in seqs:
         s = _first_seconds(seq)
-        m = sequence_metrics(s, RawIntegration().run(s, initial_quat(s)).quat)
+        # the drift over the first 10 s of movement alone: aligned where the movement starts
+        m = sequence_metrics(s, RawIntegration().run(s, initial_quat(s)).quat, align="first")
         assert m["aae_deg"] < 6.0, (seq.name, m)         # measured 1.8 on trial 05
         assert "undisturbed" in seq.meta.get("groups", [])

@@ -22,7 +22,7 @@ class EvaluateConfig:
     threads: Optional[int] = None
     plots: bool = True
     trajectories: bool = True
-    align: bool = True
+    align: str = "protocol"      # the yardstick (tcn_ahrs.metrics); or heading | first | none
 
 
 @dataclass
@@ -47,7 +47,7 @@ class CompareConfig:
     out: Optional[str] = None
     plots: bool = False
     trajectories: bool = False
-    align: bool = True
+    align: str = "protocol"      # the yardstick (tcn_ahrs.metrics); or heading | first | none
     reanchor: Optional[int] = None
     device: str = "cpu"
     threads: Optional[int] = None

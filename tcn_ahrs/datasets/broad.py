@@ -111,6 +111,8 @@ def load_file(path, name: Optional[str] = None, groups: Optional[List[str]] = No
     quat_valid = np.all(np.isfinite(quat), axis=1)
     time = np.arange(n, dtype=np.float64) / rate
     meta = {"dataset": "broad", "groups": list(groups or []), "description": description or "",
-            "info": str(info), "sampling_rate": rate}
+            "info": str(info), "sampling_rate": rate,
+            # BROAD's optical ground truth is referred to the local magnetic field's north (its paper)
+            "heading_reference": "magnetic_north"}
     return ImuSequence(name=name or path.stem, source=src, time=time, gyro=gyro, accel=accel, mag=mag,
                        quat=quat, quat_valid=quat_valid, score_mask=movement, rate=rate, meta=meta)

@@ -20,7 +20,8 @@ Common behaviour:
 * ``axes``: 9 uses the magnetometer when the recording has one, 6 never does; the column name
   is ``<method><axes>d`` (``ecf9d``) unless ``label`` is given;
 * heading reference (``heading_ref``): the filters pull heading to magnetic north.
-  ``"init"`` (default) takes the horizontal field direction at the initial attitude as the
+  ``"auto"`` (default): ``"north"`` on recordings whose ground truth is referred to magnetic
+  north (:func:`tcn_ahrs.filters.common.heading_ref_for`), else ``"init"``. ``"init"`` takes the horizontal field direction at the initial attitude as the
   reference (:func:`tcn_ahrs.filters.magnetic_from_nav`), so a ground-truth initial attitude in
   a frame whose +y is not magnetic north is kept instead of being rotated away; ``"north"``
   assumes the navigation frame's +y is magnetic north (the paper's ECF, Eq. 6);
@@ -42,7 +43,7 @@ from torch import Tensor
 from .. import so3
 from ..conventions import STATE_DTYPE
 from ..filters import ecf, eskf, madgwick, mahony
-from ..filters.common import magnetic_from_nav, triad_quat
+from ..filters.common import heading_ref_for, magnetic_from_nav, triad_quat
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
 from .registry import register
@@ -69,7 +70,7 @@ class ClassicalEstimator:
 
     axes: int = 9
     label: Optional[str] = None
-    heading_ref: str = "init"  # "init" | "north"
+    heading_ref: str = "auto"  # "auto" | "init" | "north"
     device: str = "cpu"
     dtype: torch.dtype = STATE_DTYPE
 
@@ -119,12 +120,8 @@ class ClassicalEstimator:
             q0 = so3.quat_normalize(t(init_quat))
             if q0.shape != (4,):
                 raise ValueError(f"{self.name}: init_quat must have shape (4,) (w,x,y,z), got {tuple(q0.shape)}")
-        if mag is not None and self.heading_ref == "init":
-            m_from_n = magnetic_from_nav(q0, mag[0])
-        elif self.heading_ref in ("init", "north"):
-            m_from_n = None
-        else:
-            raise ValueError(f"{self.name}: heading_ref must be 'init' or 'north', got {self.heading_ref!r}")
+        ref = heading_ref_for(self.heading_ref, seq.meta)
+        m_from_n = magnetic_from_nav(q0, mag[0]) if (mag is not None and ref == "init") else None
         if m_from_n is not None:
             q0 = so3.quat_mul(m_from_n, q0)
         return gyro, accel, dt, q0, mag, m_from_n

@@ -11,6 +11,7 @@ import torch
 from .. import so3
 from ..conventions import NETWORK_DTYPE, STATE_DTYPE
 from ..checkpoint import CheckpointError, model_from_checkpoint
+from ..filters.common import heading_ref_for
 from ..model.ahrs import LearnedAHRS
 from ..sequence import ImuSequence
 from ..validate import check_number
@@ -53,7 +54,7 @@ class LearnedEstimator:
 
     def __init__(self, model: Union[LearnedAHRS, str, Path], name: str = "TCN-ECF",
                  device: Union[str, torch.device] = "cpu", reanchor: Optional[int] = None,
-                 other_rate: str = "backbone"):
+                 other_rate: str = "backbone", heading_ref: str = "auto"):
         if isinstance(model, (str, Path)):
             self.ckpt_path = str(model)
             model = model_from_checkpoint(model)
@@ -62,6 +63,9 @@ class LearnedEstimator:
         self.model = model.to(device).eval()
         self.device = torch.device(device)
         self.name = name
+        # 9 axes: "auto" refers heading to magnetic north on magnetic-north ground truth (the
+        # yardstick), else to the field at the start — what the streaming runtimes do ("init")
+        self.heading_ref = heading_ref_for(heading_ref, None) if heading_ref != "auto" else "auto"
         # restart the open-loop ECF from the estimate every `reanchor` samples
         # (LearnedAHRS.run_sequence); None = the paper's single pass
         self.reanchor = None if reanchor is None else check_number(reanchor, "reanchor", int, 1)
@@ -129,7 +133,8 @@ class LearnedEstimator:
             q0 = torch.as_tensor(np.asarray(init_quat, dtype=np.float64).reshape(4))
         r0 = so3.quat_to_matrix(q0).to(self.device)[None]
         with torch.no_grad():
-            out = self.model.run_sequence(imu, dt, r0, start, reanchor=self.reanchor)
+            out = self.model.run_sequence(imu, dt, r0, start, reanchor=self.reanchor,
+                                          heading_ref=heading_ref_for(self.heading_ref, seq.meta))
         quat = so3.matrix_to_quat(out["rot"][0]).cpu().numpy()
         sig = {
             "gyro_correction": (out["omega"][0] - imu[0, :, 0:3]).cpu().double().numpy(),

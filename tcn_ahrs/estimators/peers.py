@@ -22,7 +22,8 @@ vqf 2.1       Causal ``VQF(gyrTs).updateBatch(gyr, acc, mag)`` (``offlineVQF`` i
               float64 (the wrapper makes them so). Output ``quat6D``/``quat9D`` w,x,y,z
               ``nav_from_body``; 9D reference frame is ENU (z up; the magnetometer
               heading update uses ``atan2(m_x, m_y)``, i.e. magnetic north is +y). The 6D
-              frame is z up with arbitrary heading. The initial attitude cannot be set.
+              frame is z up with arbitrary heading. The initial attitude is set through
+              ``VQF.state`` (``gyrQuat``; ``accQuat`` identity).
 imufusion     x-io Fusion (>= 1.3 API). Inputs deg/s and g (specific force), any field unit.
 1.3           ``AhrsSettings(...)`` IGNORES its ``convention`` argument (it stays NWU);
               the wrapper sets ``settings.convention = CONVENTION_ENU`` through the
@@ -58,8 +59,9 @@ initial attitude and are scored with the 6D conventions of :mod:`tcn_ahrs.metric
 
 Initial attitude: the ``ahrs`` filters start from ``init_quat`` (else from the first
 accelerometer/magnetometer sample, TRIAD in ENU), imufusion is seeded with it (and skips
-its start-up phase, which would overwrite it), VQF and RIANN initialise themselves and
-ignore it.
+its start-up phase, which would overwrite it), VQF starts from it through its state (9D:
+its heading then snaps to the magnetometer), RIANN initialises itself and ignores it (the
+yardstick's unscored settling time covers its start).
 """
 from __future__ import annotations
 
@@ -153,7 +155,7 @@ class Peer:
 
     base_name = "peer"
     heading_free = False
-    heading_ref = "init"   # "init": heading referred to the given start (as the project filters); "north"
+    heading_ref = "auto"   # as the project filters: "init" (the given start), "north", "auto" (heading_ref_for)
 
     def __init__(self, axes: int, params: Dict[str, Any]):
         self.axes = _check_axes(axes)
@@ -171,21 +173,21 @@ class Peer:
             return triad_quat(seq.accel[0], None if mag is None else mag[0]), None
         q = np.asarray(init_quat, dtype=np.float64).reshape(4)
         q = q / np.linalg.norm(q)
-        m = self._magnetic_from_nav(q, mag)
+        m = self._magnetic_from_nav(q, mag, seq.meta)
         return (q, None) if m is None else (_quat_mul(m, q), m)
 
-    def _magnetic_from_nav(self, q0: np.ndarray, mag) -> Optional[np.ndarray]:
+    def _magnetic_from_nav(self, q0: np.ndarray, mag, meta=None) -> Optional[np.ndarray]:
         """With a magnetometer and a given start attitude, the rotation about up from the caller's
         navigation frame into the magnetic one (``heading_ref="init"`` of the project filters,
         :func:`tcn_ahrs.filters.common.magnetic_from_nav`): a 9-axis peer pulls heading to
         magnetic north, so started from a motion-capture attitude with arbitrary yaw it would
         swing by that yaw; run in the magnetic frame and mapped back, it keeps the start.
         ``heading_ref = "north"``: none (the caller's frame is magnetic ENU)."""
-        if mag is None or self.heading_ref == "north":
+        from ..filters.common import heading_ref_for, magnetic_from_nav
+
+        if mag is None or heading_ref_for(self.heading_ref, meta) == "north":
             return None
         import torch
-
-        from ..filters.common import magnetic_from_nav
 
         m = magnetic_from_nav(torch.as_tensor(q0, dtype=torch.float64), torch.as_tensor(mag[0], dtype=torch.float64))
         return m.numpy()
@@ -301,7 +303,16 @@ class VQFEstimator(Peer):
         if self.offline:
             out = self._vqf.offlineVQF(gyr, acc, mag, ts, dict(self.params))
         else:
-            out = self._vqf.VQF(ts, **self.params).updateBatch(gyr, acc, mag)
+            filt = self._vqf.VQF(ts, **self.params)
+            if init_quat is not None:
+                # started at the given attitude like every other estimator (the yardstick,
+                # tcn_ahrs.metrics): VQF's 6D attitude is accQuat ⊗ gyrQuat (its frame: z up,
+                # ENU here); its 9D heading still snaps to the magnetometer at the first sample
+                state = filt.state
+                state["gyrQuat"] = np.asarray(init_quat, dtype=np.float64).reshape(4) / np.linalg.norm(init_quat)
+                state["accQuat"] = np.array([1.0, 0.0, 0.0, 0.0])
+                filt.state = state
+            out = filt.updateBatch(gyr, acc, mag)
         key = "quat9D" if self.axes == 9 else "quat6D"
         # VQF 9D reference frame: z up, magnetic north +y (heading from atan2(m_x, m_y)) = ENU.
         quat = to_enu(out[key], "ENU")

@@ -8,7 +8,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..metrics import attitude_errors, align_to_first
+from ..metrics import YARDSTICK, aligned, attitude_errors
 from ..sequence import ImuSequence
 from ..tum import write_tum  # noqa: F401  (the one TUM writer; evaluate's artefacts use it from here)
 
@@ -21,8 +21,8 @@ def safe_name(name: str) -> str:
 
 
 def plot_recording(path, seq: ImuSequence, quat_est: np.ndarray, method: str,
-                   signals: Optional[dict] = None, align: bool = True,
-                   max_points: int = MAX_PLOT_POINTS) -> None:
+                   signals: Optional[dict] = None, align="protocol",
+                   max_points: int = MAX_PLOT_POINTS, axes: Optional[int] = None) -> None:
     """Roll/pitch/yaw of the (aligned) estimate vs ground truth, the attitude and yaw error over
     time, and ``signals["gyro_correction"]`` (N, 3) rad/s if present; Agg backend, at most
     ``max_points`` points per curve."""
@@ -37,7 +37,9 @@ def plot_recording(path, seq: ImuSequence, quat_est: np.ndarray, method: str,
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     m = seq.scored()
-    q_est = align_to_first(seq.quat, quat_est, m) if align else np.asarray(quat_est, dtype=np.float64)
+    if align == "protocol":  # the estimate as the metrics score it (tcn_ahrs.metrics.Yardstick)
+        m, align = YARDSTICK.mask(seq), YARDSTICK.alignment(seq, seq.num_axes if axes is None else axes)
+    q_est = aligned(seq.quat, quat_est, m, align)
     angle, dyaw = attitude_errors(seq.quat, quat_est, m, align)
     n = len(seq)
     idx = np.unique(np.linspace(0, n - 1, min(n, max_points)).astype(int))

@@ -63,7 +63,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         res = evaluate(estimators, seqs, out_dir=stage, axes=axes, dataset=str(cfg.data.name),
                        plots=bool(cfg.get("plots", _D.plots)),
                        trajectories=bool(cfg.get("trajectories", _D.trajectories)),
-                       align=bool(cfg.get("align", _D.align)))
+                       align=cfg.get("align", _D.align))
     print(f"results in {out}")
     print_table(res)
     return res

@@ -91,13 +91,24 @@ def group_table(results: dict, metric_keys: Iterable[str] = ("aae_deg", "aye_deg
     return "\n\n".join(out) + "\n"
 
 
+def alignment_text(results: dict) -> str:
+    """How the table's estimates were aligned, in words (results.json's ``align``; older files
+    hold a bool: True = at the first scored sample)."""
+    a = results.get("align", "first")
+    a = {True: "first", False: "none"}.get(a, a) if isinstance(a, bool) else a
+    return {"protocol": "the yardstick of docs/conventions.md: the first 2 s unscored, heading aligned once "
+                        "about the vertical (9-axis on magnetic-north ground truth: none), inclination absolute",
+            "heading": "heading aligned once about the vertical, inclination absolute",
+            "first": "one rotation aligning the estimate at the first scored sample",
+            "none": "no alignment"}.get(a, str(a))
+
+
 def results_markdown(results: dict) -> str:
     """The whole ``results.md``: AAE/AYE table, BROAD errors (if any), group averages (if any)."""
     title = results.get("dataset") or "evaluation"
     parts = [f"# Results: {title}\n",
-             f"AAE / AYE in degrees (RMS over scored samples; alignment at the first scored sample: "
-             f"{'yes' if results.get('align', True) else 'no'}); AHE: heading error about the "
-             f"navigation vertical, aligned the same way.\n",
+             f"AAE / AYE in degrees (RMS over scored samples; {alignment_text(results)}); AHE: heading "
+             f"error about the navigation vertical, aligned the same way.\n",
              markdown_table(results, ("aae_deg", "aye_deg", "ahe_deg"))]
     broad_keys = ("total_deg", "heading_deg", "inclination_deg")
     if _has(results, "total_deg"):
@@ -153,8 +164,8 @@ def compare_markdown(results: dict) -> str:
     title = results.get("dataset") or "comparison"
     hf = [n for n, c in results.get("columns", {}).items() if c.get("heading_free")]
     parts = [f"# Comparison: {title}\n",
-             f"Recordings: {len(results['recordings'])}. AAE / AYE in degrees (RMS over scored samples, "
-             f"aligned at the first scored sample: {'yes' if results.get('align', True) else 'no'}). "
+             f"Recordings: {len(results['recordings'])}. AAE / AYE in degrees (RMS over scored samples; "
+             f"{alignment_text(results)}). "
              "Bold: best in the column. `—`: not defined"
              + (f" (heading-free estimators {', '.join(hf)} are scored on inclination only)" if hf else "")
              + ".\n",

@@ -13,7 +13,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..estimators.base import initial_state
-from ..metrics import HEADING_KEYS, broad_errors, extra_metrics, metric_keys, sequence_metrics
+from ..metrics import HEADING_KEYS, extra_metrics, metric_keys, sequence_metrics
 from ..sequence import ImuSequence
 from .files import plot_recording, safe_name, write_tum
 from .reports import results_markdown
@@ -38,6 +38,11 @@ def jsonable(v):
     return v
 
 
+def align_label(align) -> str:
+    """The alignment as results.json records it: ``protocol``, ``heading``, ``first`` or ``none``."""
+    return {True: "first", False: "none", None: "none"}.get(align, align) if isinstance(align, (bool, type(None))) else str(align)
+
+
 def _mean_metrics(rows: List[dict]) -> Dict[str, Optional[float]]:
     """Mean of each metric over recordings that have scored samples (None if any is None: a
     diverged estimator must not vanish from the average)."""
@@ -60,7 +65,7 @@ def evaluate(
     trajectories: bool = True,
     axes: Optional[int] = None,
     dataset: Optional[str] = None,
-    align: bool = True,
+    align="protocol",
     verbose: bool = False,
 ) -> dict:
     """Run every estimator on every recording and score it.
@@ -75,7 +80,8 @@ def evaluate(
                     9 or ``None`` uses whatever each recording has.
         dataset:    name stored in the results (default: ``seq.meta["dataset"]`` of the first
                     recording, else ``""``).
-        align:      AAE/AYE alignment at the first scored sample (see :mod:`tcn_ahrs.metrics`).
+        align:      ``"protocol"`` (the yardstick of :mod:`tcn_ahrs.metrics`, the default) or an
+                    alignment of :data:`tcn_ahrs.metrics.ALIGNMENTS` for AAE/AYE/AHE.
     Returns:
         the results dict (see module docstring).
     """
@@ -139,9 +145,6 @@ def evaluate(
                 raise ValueError(f"estimator {est.name!r} on {seq.name!r}: expected quat of shape "
                                  f"({len(seq)}, 4), got {quat.shape}")
             m = sequence_metrics(seq, quat, axes=seq_in.num_axes, align=align)
-            if "inclination_deg" not in m:
-                # inclination needs no heading: reported for every estimator (6D convention)
-                m["inclination_deg"] = broad_errors(seq.quat, quat, seq.scored(), "6d")["inclination_deg"]
             if heading_free:
                 # no heading reference (RIANN): only the inclination is meaningful
                 for k in HEADING_KEYS + tuple(x.key for x in extra_metrics() if x.needs_heading):
@@ -166,14 +169,14 @@ def evaluate(
                 groups.setdefault(str(g), []).append(row)
         mres["groups"] = {g: _mean_metrics(r) for g, r in groups.items()}
 
-    results = {"dataset": dataset, "align": bool(align), "recordings": rec_names, "methods": methods}
+    results = {"dataset": dataset, "align": align_label(align), "recordings": rec_names, "methods": methods}
     if out_dir is not None:
         write_artefacts(out_dir, results, sequences, estimates, plots=plots, trajectories=trajectories, align=align)
     return results
 
 
 def write_artefacts(out_dir, results: dict, sequences: Sequence[ImuSequence], estimates: Dict[str, List[tuple]],
-                    plots: bool = True, trajectories: bool = True, align: bool = True) -> None:
+                    plots: bool = True, trajectories: bool = True, align="protocol") -> None:
     """What :func:`evaluate` computed, written afterwards: results.json / results.md, and per
     method and recording a plot (``plots/<method>/<recording>.png``) and a TUM trajectory
     (``trajectories/<method>/<recording>.txt``, ground truth under ``groundtruth/``).
@@ -185,11 +188,12 @@ def write_artefacts(out_dir, results: dict, sequences: Sequence[ImuSequence], es
             valid = seq.quat_valid
             write_tum(out / "trajectories" / "groundtruth" / f"{safe_name(seq.name)}.txt",
                       seq.time[valid], seq.quat[valid])
+    axes_of = {(m, r["name"]): r.get("axes") for m, res in results["methods"].items() for r in res["recordings"]}
     for method, runs in estimates.items():
         for seq, (quat, signals) in zip(sequences, runs):
             if plots:
                 plot_recording(out / "plots" / safe_name(method) / f"{safe_name(seq.name)}.png",
-                               seq, quat, method, signals, align=align)
+                               seq, quat, method, signals, align=align, axes=axes_of.get((method, seq.name)))
             if trajectories:
                 write_tum(out / "trajectories" / safe_name(method) / f"{safe_name(seq.name)}.txt", seq.time, quat)
     (out / "results.json").write_text(json.dumps(results, indent=2))

@@ -155,6 +155,21 @@ def quat_about_up(angle: Tensor) -> Tensor:
     return torch.stack([torch.cos(h), z, z, torch.sin(h)], -1)
 
 
+HEADING_REFS = ("auto", "init", "north")
+
+
+def heading_ref_for(heading_ref: str, meta) -> str:
+    """``"north"`` or ``"init"``: ``"auto"`` (the default of every 9-axis estimator) refers heading
+    to magnetic north where the recording's ground truth is referred to it
+    (``meta["heading_reference"] == "magnetic_north"``: BROAD, the simulator without declination;
+    the yardstick scores those unaligned), else to the field at the initial attitude."""
+    if heading_ref not in HEADING_REFS:
+        raise ValueError(f"heading_ref: expected one of {HEADING_REFS}, got {heading_ref!r}")
+    if heading_ref == "auto":
+        return "north" if (meta or {}).get("heading_reference") == "magnetic_north" else "init"
+    return heading_ref
+
+
 def magnetic_from_nav(q0: Tensor, mag0: Tensor) -> Tensor:
     """Rotation ``q_M_from_nav`` (..., 4) about up into the *magnetic* ENU frame ``M``, in which
     the horizontal field at the initial attitude points to +y (north).

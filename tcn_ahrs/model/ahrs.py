@@ -187,7 +187,7 @@ class LearnedAHRS(nn.Module):
                                imu.dtype if dtype is None else dtype)
 
     def run_sequence(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int = 0,
-                     reanchor: Optional[int] = None) -> Dict[str, Tensor]:
+                     reanchor: Optional[int] = None, heading_ref: str = "init") -> Dict[str, Tensor]:
         """A whole recording: the (causal) calibration sees every sample; the ECF and the
         integration start at sample ``start`` (first valid ground truth) from ``r0``.
 
@@ -203,11 +203,12 @@ class LearnedAHRS(nn.Module):
 
         With the closed loop (``model.loop=closed``) the filter runs sample by sample in float64
         from ``r0`` at ``start``; ``reanchor`` does not apply (the loop never drifts from its
-        own estimate). ``omega`` is then the applied rate ω̂_gyr − b + w."""
+        own estimate). ``omega`` is then the applied rate ω̂_gyr − b + w. ``heading_ref``
+        (backbone models, 9 axes): ``"init"`` the field at the start, ``"north"`` magnetic north."""
         if self.closed is not None:
             return self._run_closed(imu, dt, r0, start)
         if self.backbone is not None:
-            return self._run_backbone(imu, dt, r0, start)
+            return self._run_backbone(imu, dt, r0, start, heading_ref)
         cal = self.calibration(imu)
         out = dict(cal)
         omega = cal["gyro"].clone()
@@ -243,14 +244,15 @@ class LearnedAHRS(nn.Module):
         out["rot"] = torch.cat(rot_parts, 1)[:, :n]
         return out
 
-    def _run_backbone(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int) -> Dict[str, Tensor]:
+    def _run_backbone(self, imu: Tensor, dt: Tensor, r0: Tensor, start: int,
+                      heading_ref: str = "init") -> Dict[str, Tensor]:
         """The backbone with the learned residuals from sample ``start`` (batch of one)."""
         if imu.shape[0] != 1:
             raise ValueError("run_sequence with the backbone: one recording at a time (batch of one)")
         n = imu.shape[1]
         cal = self.calibration(imu)
         q0 = so3.matrix_to_quat(r0[0].to(torch.float64)).cpu().numpy()
-        res = self.backbone.run(cal, imu, dt, q0, start)
+        res = self.backbone.run(cal, imu, dt, q0, start, heading_ref)
         out = dict(cal)
         rot = so3.quat_to_matrix(res["quat"]).to(imu.device)[None]
         out["rot"] = torch.cat([r0.to(torch.float64).unsqueeze(1).expand(-1, start, 3, 3), rot], 1)[:, :n]

@@ -124,11 +124,13 @@ class BackboneLoop(nn.Module):
         return {"acc_trust": acc, "mag_trust": mag, "bias_trust": torch.full_like(acc, self.bias_trust_scale)}
 
     @torch.no_grad()
-    def run(self, cal: Dict[str, Tensor], imu: Tensor, dt: Tensor, q0: np.ndarray, start: int) -> Dict[str, Tensor]:
+    def run(self, cal: Dict[str, Tensor], imu: Tensor, dt: Tensor, q0: np.ndarray, start: int,
+            heading_ref: str = "init") -> Dict[str, Tensor]:
         """One recording (batch of one): cal from :class:`ResidualCalibration`, raw imu (1, N, C),
         dt (1, N), q0 (4,) ``nav_from_body`` at sample ``start``. The filter starts at ``start``
         (the networks saw the samples before). 9 axes: heading is referred to the field at the
-        start (the classical filters' ``heading_ref="init"``), so any motion-capture yaw works.
+        start (the classical filters' ``heading_ref="init"``), so any motion-capture yaw works;
+        ``heading_ref="north"``: to magnetic north (ground truth referred to it: BROAD).
         Returns ``quat`` (N - start, 4), ``gyro_bias`` (N - start, 3), ``rest`` (N - start,) and
         the trusts (1, N)."""
         from ..filters.common import magnetic_from_nav
@@ -141,7 +143,7 @@ class BackboneLoop(nn.Module):
         m = imu[0, start:, 6:9].double().cpu().numpy() if (self.use_mag and imu.shape[-1] >= 9) else None
         q = np.asarray(q0, dtype=np.float64)
         m_from_n = None
-        if m is not None:
+        if m is not None and heading_ref == "init":
             m_from_n = magnetic_from_nav(torch.as_tensor(q), torch.as_tensor(m[0]))
             q = so3.quat_mul(m_from_n, torch.as_tensor(q)).numpy()
         out = bb.run(g, a, m, d, self.params, q0=q, acc_trust=tr["acc_trust"][0, start:].cpu().numpy(),

@@ -177,6 +177,8 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
         "K_gyro": k_gyro, "K_acc": k_acc, "K_mag": k_mag,
         "gyro_bias_static": b_g0, "acc_bias_static": b_a0, "hard_iron": hard_iron,
         "mag_field_nav": m_nav,
+        # ground truth is ENU with geographic north; it is magnetic north only without declination
+        "heading_reference": "magnetic_north" if envp.declination_deg == 0 else "true_north",
         "true_gyro": omega, "true_gyro_bias": gyro_bias, "true_acc_bias": acc_bias,
         "true_ext_acc": ext_acc_body, "true_acc_nav": acc_nav, "true_vel_nav": vel_nav,
         "true_mag_disturbance": mag_dist_body,
