@@ -24,8 +24,9 @@ LAYERS = [
     # the one recording type, its validation, how an IMU agrees with its ground truth
     {"sequence", "agreement", ""},
     {"datasets"},
-    # the classical filters (torch reference + numba loops) and the backbone's tensor/numba readings
-    {"filters"},
+    # the classical filters (torch reference + numba loops) and the backbone's tensor/numba readings;
+    # the static calibration (constant sensor errors fitted once, used by every family)
+    {"filters", "calibration"},
     # the learned model, its losses and the scores (AAE, ...); checkpoints (which build models);
     # navigation examples built on the filters' Kalman pieces
     {"model", "losses", "metrics", "checkpoint", "nav"},
@@ -34,7 +35,8 @@ LAYERS = [
     # evaluation runs, tuning and knob selection, training data, comparison columns
     {"evaluate", "tuning", "knobs", "data", "columns"},
     # what a user runs: export, streaming runtimes, benchmarks, the experiments and training
-    {"export", "streaming", "bench", "transfer", "crossval", "lodo", "finetune", "compare", "train", "training"},
+    {"export", "streaming", "bench", "transfer", "crossval", "lodo", "finetune", "compare", "train", "training",
+     "search"},
     # the command line (tcn-ahrs COMMAND): reaches the commands above by name
     {"cli", "__main__"},
 ]
