@@ -41,6 +41,8 @@ COMMANDS: Dict[str, Command] = {
                          "accuracy | speed | transfer | lodo | finetune"),
     "crossval": Command("crossval", "tcn_ahrs.crossval:crossval_main",
                         "nested leave-recordings-out folds of a recipe"),
+    "search": Command("search", "tcn_ahrs.search:search_main",
+                      "nested search over estimator families (+ static calibration) for a device"),
     "reproduce": Command("reproduce", "tcn_ahrs.reproduce:reproduce_main",
                          "a navigation paper's tables (paper=...)"),
     "inspect": Command("inspect_data", "tcn_ahrs.datasets.inspect:inspect_main",

@@ -40,7 +40,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from tcn_ahrs.config import (CONF_DIR, BenchmarkConfig, CompareConfig, CrossvalConfig, EvaluateConfig,
+from tcn_ahrs.config import (CONF_DIR, BenchmarkConfig, CompareConfig, CrossvalConfig, EvaluateConfig, SearchConfig,
                              ExportConfig, InspectDataConfig, ModelConfig, ReproduceConfig, TrainScriptConfig,
                              check_types, defaults, keys)
 from tcn_ahrs.config.data import data_schema
@@ -52,6 +52,7 @@ from tcn_ahrs.config.train import TRAIN_GROUPS
 PRIMARY = {
     "train": (TrainScriptConfig, ("data", "model", "trainer", "callbacks", "logger", "experiment")),
     "crossval": (CrossvalConfig, ("data", "model", "trainer", "callbacks", "logger", "experiment")),
+    "search": (SearchConfig, ("data", "model", "trainer", "callbacks", "logger", "experiment")),
     "evaluate": (EvaluateConfig, ("data",)),
     "compare": (CompareConfig, ("data",)),
     "benchmark": (BenchmarkConfig, ("data",)),

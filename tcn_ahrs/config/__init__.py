@@ -82,7 +82,7 @@ def check_section(section: Mapping, schema, where: str, extra=()) -> None:
 
 
 from .model import ClosedLoopConfig, ErrorScaleConfig, ModelConfig, ResidualConfig, TCNConfig  # noqa: E402
-from .train import (AugmentConfig, CrossvalConfig, CrossvalSection, EvalSection, NoiseConfig,  # noqa: E402
+from .train import (AugmentConfig, CrossvalConfig, CrossvalSection, SearchConfig, SearchSection, EvalSection, NoiseConfig,  # noqa: E402
                     TrainConfig, TrainScriptConfig)
 from .scripts import (BenchmarkConfig, CompareConfig, EvaluateConfig, ExportConfig,  # noqa: E402
                       InspectDataConfig, ReproduceConfig)
@@ -90,5 +90,6 @@ from .scripts import (BenchmarkConfig, CompareConfig, EvaluateConfig, ExportConf
 __all__ = ["CONF_DIR", "conf_path", "plain", "keys", "defaults", "check_keys", "check_types", "check_section",
            "ModelConfig", "TCNConfig", "ClosedLoopConfig", "ErrorScaleConfig", "ResidualConfig",
            "TrainConfig", "AugmentConfig", "NoiseConfig", "EvalSection", "TrainScriptConfig", "CrossvalSection",
+           "SearchSection", "SearchConfig",
            "CrossvalConfig", "EvaluateConfig", "CompareConfig", "BenchmarkConfig", "ExportConfig",
            "InspectDataConfig", "ReproduceConfig"]

@@ -116,5 +116,25 @@ class CrossvalSection:
 
 
 @dataclass
+class SearchSection:
+    """``search:`` (conf/search.yaml = train.yaml + this section; tcn_ahrs.search)."""
+    folds: Optional[List[int]] = None  # outer fold indices to run (null: all of data.folds)
+    inner: str = "auto"                # inner validation: fold | split | auto (as crossval.inner)
+    families: List[str] = field(default_factory=lambda: ["strapdown", "ecf", "mahony", "madgwick", "backbone"])
+    calibrations: List[str] = field(default_factory=lambda: ["none", "gyro_bias", "full"])
+    learned: Optional[Dict[str, str]] = None  # {family: crossval folder}: its fold checkpoints are candidates
+    trials: int = 40                   # Optuna trials per family x calibration and fold (the defaults first)
+    seeds: List[int] = field(default_factory=lambda: [0, 1, 2])   # sampler seeds: every fold over each
+    tie_margin: float = 0.02           # a simpler family within 2 % of the best inner-validation AAE wins
+    incl_margin: float = 0.05          # deg: no candidate with an inclination worse than the best by more
+    out: Optional[str] = None          # null: runs/search/<data>_<axes>
+
+
+@dataclass
+class SearchConfig(TrainScriptConfig):
+    search: SearchSection = field(default_factory=SearchSection)
+
+
+@dataclass
 class CrossvalConfig(TrainScriptConfig):
     crossval: CrossvalSection = field(default_factory=CrossvalSection)
