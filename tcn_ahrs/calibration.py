@@ -124,21 +124,23 @@ def gyro_pairs(seqs: Sequence[ImuSequence], window_s: float) -> (np.ndarray, np.
         if s.quat is None:
             continue
         q = torch.as_tensor(s.quat, dtype=torch.float64)
-        for idx in _windows(s, window_s):
-            i, j = int(idx[0]), int(idx[-1]) + 1
-            if j >= len(s) or not s.quat_valid[j]:
-                continue
-            dq = so3.quat_mul(so3.quat_conj(q[i]), q[j])
-            xs.append(so3.quat_log(dq).numpy() / (s.time[j] - s.time[i]))
-            # the readings integrated over the same interval the same way (reading k covers
-            # (t_k-1, t_k]): both sides carry the window's non-commutativity (coning), so a
-            # fast rotation does not bias the fit; to first order in the errors y = A ω + b holds
-            yq = so3.quat_exp(torch.as_tensor(s.gyro[i + 1:j + 1] * s.dt[i + 1:j + 1, None], dtype=torch.float64))
-            acc = yq[0]
-            for r in yq[1:]:
-                acc = so3.quat_mul(acc, r)
-            ys.append(so3.quat_log(acc).numpy() / (s.time[j] - s.time[i]))
-    return np.asarray(xs).reshape(-1, 3), np.asarray(ys).reshape(-1, 3)
+        wins = [w for w in _windows(s, window_s) if w[-1] + 1 < len(s) and s.quat_valid[w[-1] + 1]]
+        if not wins:
+            continue
+        i = np.array([w[0] for w in wins])
+        j = i + len(wins[0])  # every window has the same length
+        span = torch.as_tensor(s.time[j] - s.time[i], dtype=torch.float64)[:, None]
+        xs.append((so3.quat_log(so3.quat_mul(so3.quat_conj(q[i]), q[j])) / span).numpy())
+        # the readings integrated over the same interval the same way (reading k covers
+        # (t_k-1, t_k]): both sides carry the window's non-commutativity (coning), so a fast
+        # rotation does not bias the fit; to first order in the errors y = A ω + b holds
+        steps = np.stack([s.gyro[i + 1 + k] * s.dt[i + 1 + k, None] for k in range(len(wins[0]))], 1)
+        yq = so3.quat_exp(torch.as_tensor(steps, dtype=torch.float64))  # (W, n, 4)
+        acc = yq[:, 0]
+        for k in range(1, yq.shape[1]):
+            acc = so3.quat_mul(acc, yq[:, k])
+        ys.append((so3.quat_log(acc) / span).numpy())
+    return np.concatenate(xs or [np.zeros((0, 3))]), np.concatenate(ys or [np.zeros((0, 3))])
 
 
 def acc_pairs(seqs: Sequence[ImuSequence], window_s: float, max_rate: float = 0.2,

@@ -3,20 +3,25 @@ evidence (``tcn-ahrs search``).
 
 For each outer fold ``i`` of ``data.folds`` (the recordings scored, which choose nothing):
 
-1. the other training recordings are split into inner training and inner validation
-   (:func:`tcn_ahrs.crossval.inner_split`: the next fold, whole, or the later parts);
-2. every candidate is fitted on the inner training recordings only: a classical family
+1. the other training recordings give the inner splits (``search.inner``: with ≥ 3 folds every
+   other fold, whole, validates in turn — one validation fold alone is too few recordings to
+   choose on; else the later parts of the recordings, :func:`tcn_ahrs.crossval.inner_split`);
+2. every candidate is fitted on each inner training set only: a classical family
    (:data:`FAMILIES`: strapdown integration, ECF, Mahony, Madgwick, the VQF-grade backbone with
-   VQF's full parameter set) × a static calibration (:mod:`tcn_ahrs.calibration`: none, gyro
-   bias, gyro full + accelerometer bias + magnetometer ellipsoid), its knobs searched by Optuna
-   (TPE, seeded; the study in SQLite under the output folder, so a killed search resumes
-   where it stopped); a learned family is a fold checkpoint that ``tcn-ahrs crossval`` trained
-   on the same inner split (``search.learned``: ``{family: crossval folder}``);
-3. the inner validation recordings choose the family: the lowest mean AAE, where a candidate
-   within ``search.tie_margin`` of the best and simpler (:data:`SIMPLICITY`) wins the tie, and
-   none whose inclination is worse than the best inclination by more than ``incl_margin``;
-4. the chosen candidate is scored on fold ``i`` beside every family's default and calibrated
-   filter and every tuned candidate, all with the one yardstick (:mod:`tcn_ahrs.metrics`).
+   VQF's full parameter set), with its defaults or with its knobs searched by Optuna (TPE, seeded,
+   the defaults tried first; the studies in SQLite under the output folder, so a killed search
+   resumes), on the raw signals or on a static calibration (:mod:`tcn_ahrs.calibration`: gyro
+   bias; gyro matrix + accelerometer offset + magnetometer ellipsoid) fitted on the same set;
+3. the inner validation sets choose (:func:`choose`): the lowest mean AAE among the candidates
+   whose inclination is within ``incl_margin`` of the best default filter's, a simpler family
+   (:data:`SIMPLICITY`) winning within ``tie_margin``; a learned family — a fold checkpoint that
+   ``tcn-ahrs crossval`` trained without fold ``i`` and without its inner fold
+   (``search.learned``: ``{family: crossval folder}``) — replaces the classical choice if it beats
+   it by the margin on that inner fold;
+4. the classical candidates are fitted again on all the outer training recordings (nested
+   cross-validation's refit) and scored on fold ``i``, beside the bar: every family with its
+   defaults, on the raw and on the calibrated signals — all with the one yardstick
+   (:mod:`tcn_ahrs.metrics`).
 
 ``search.seeds`` repeats steps 2–4 with other sampler seeds; the report gives mean and spread.
 Writes ``search.json`` and ``search.md``; the numbers are the runner's (:func:`tcn_ahrs.evaluate.evaluate`).
@@ -207,64 +212,89 @@ def _learned_candidates(spec: Dict[str, str], fold: int, label_axes: int) -> Dic
     return out
 
 
-def search_fold(outer: int, train: Sequence[ImuSequence], val: Sequence[ImuSequence], test: Sequence[ImuSequence],
-                axes: int, families: Sequence[str], calibrations: Sequence[str], trials: int, seed: int,
-                storage: Optional[str], learned: Dict[str, Any], tie_margin: float, incl_margin: float,
-                log: Callable[[str], None] = print) -> Dict[str, Any]:
-    """Steps 2-4 of the module docstring for one outer fold and one seed; returns the fold's
-    record: every candidate (knobs, inner scores), the bar (each family with its defaults, on the
-    raw and on the calibrated signals: the classical filters a user has without any search), the
-    choice, and every column's scores on the outer fold."""
+def _fit_candidate(family: str, calib: str, tuned: bool, train: Sequence[ImuSequence], axes: int, trials: int,
+                   seed: int, storage: Optional[str], study: str) -> Tuple[Any, Dict[str, float]]:
+    """One classical candidate fitted on ``train``: its static calibration and (``tuned``) its
+    knobs. Returns (estimator, knobs)."""
+    fam = FAMILIES[family]
+    cal = None if CALIBRATIONS[calib] is None else cal_mod.fit_calibration(train, strict=False, **CALIBRATIONS[calib])
+    knobs = dict(fam.defaults)
+    if tuned and fam.defaults:
+        knobs, _ = tune_family(fam, train, axes, trials, seed, storage, study, cal)
+    return Calibrated(fam.build(axes, **knobs), cal), knobs
+
+
+def candidate_names(families: Sequence[str], calibrations: Sequence[str]) -> List[Tuple[str, str, str, bool]]:
+    """(name, family, calibration, tuned) of every classical candidate: each family with its
+    defaults (the bar: the classical filters a user has without any search) and tuned, on the
+    raw and on each calibration's signals."""
+    out = []
+    for f in families:
+        for tuned in (False, True):
+            if tuned and not FAMILIES[f].defaults:
+                continue  # nothing to tune (strapdown)
+            for c in calibrations:
+                out.append((f"{f} ({'tuned' if tuned else 'defaults'})" + ("" if c == "none" else f" +cal:{c}"),
+                            f, c, tuned))
+    return out
+
+
+def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequence[ImuSequence],
+                test: Sequence[ImuSequence], axes: int, families: Sequence[str], calibrations: Sequence[str],
+                trials: int, seed: int, storage: Optional[str], learned: Dict[str, Any], learned_split: int,
+                tie_margin: float, incl_margin: float, log: Callable[[str], None] = print) -> Dict[str, Any]:
+    """Steps 2-4 of the module docstring for one outer fold and one seed.
+
+    ``splits``: the inner (training, validation) pairs (every other fold as validation in turn,
+    or one pair); each classical candidate is fitted on every inner training set and scored on its
+    validation set, the choice reads the mean over the splits. A learned candidate (trained by
+    crossval on split ``learned_split``) is compared on that split alone. The chosen classical
+    candidate is fitted again on ``others`` (every recording but the outer fold's) and scored on
+    ``test`` beside every other candidate fitted the same way. Returns the fold's record."""
     from .evaluate import evaluate
 
     t0 = time.perf_counter()
-    cals = {c: (None if CALIBRATIONS[c] is None else cal_mod.fit_calibration(train, strict=False, **CALIBRATIONS[c]))
-            for c in calibrations}
-    for c, k in cals.items():
-        if k is not None:
-            log(f"   fold {outer}: calibration {c}: {k.modes} {k.to_dict()['summary']}")
-    suffix = lambda c: "" if c == "none" else f" +cal:{c}"  # noqa: E731
-    bar = {f"{f} (defaults){suffix(c)}": Calibrated(FAMILIES[f].build(axes, **FAMILIES[f].defaults), cals[c],
-                                                    name=f"{f} (defaults){suffix(c)}")
-           for f in families for c in calibrations}
     cands: Dict[str, Dict[str, Any]] = {}
-    fitted: Dict[str, Any] = dict(bar)
-    for name, est in bar.items():
-        v = mean_scores(est, val, axes)
-        cands[name] = {"family": name.split(" ")[0], "calibration": name.split(":")[-1] if "+cal" in name else "none",
-                       "knobs": dict(FAMILIES[name.split(" ")[0]].defaults), "defaults": True,
-                       "inner_val_aae": v[0], "inner_val_inclination": v[1]}
-    for fam in families:
-        family = FAMILIES[fam]
-        if not family.defaults:
-            continue  # nothing to tune: its default is in the bar
-        for c in calibrations:
-            name = f"{fam} (tuned){suffix(c)}"
-            knobs, train_aae = tune_family(family, train, axes, trials, seed, storage,
-                                           f"fold{outer}_seed{seed}_{fam}_{c}", cals[c])
-            est = Calibrated(family.build(axes, **knobs), cals[c], name=name)
-            v = mean_scores(est, val, axes)
-            cands[name] = {"family": fam, "calibration": c, "knobs": knobs, "inner_train_aae": train_aae,
-                           "inner_val_aae": v[0], "inner_val_inclination": v[1]}
-            fitted[name] = est
-            log(f"   fold {outer} seed {seed}: {name:<30s} inner train {train_aae:8.3f}  inner val {v[0]:8.3f} / {v[1]:6.3f}")
-    for fam, est in learned.items():
-        v = mean_scores(est, val, axes)
-        cands[fam] = {"family": fam, "calibration": "learned", "knobs": {}, "inner_val_aae": v[0],
-                      "inner_val_inclination": v[1], "checkpoint": getattr(est, "ckpt_path", None)}
-        fitted[fam] = est
-        log(f"   fold {outer} seed {seed}: {fam:<30s} inner val {v[0]:8.3f} / {v[1]:6.3f}")
-    bar_incl = min(cands[k]["inner_val_inclination"] for k in bar)
+    for name, fam, c, tuned in candidate_names(families, calibrations):
+        per_split = []
+        for j, (tr, va) in enumerate(splits):
+            est, knobs = _fit_candidate(fam, c, tuned, tr, axes, trials, seed, storage,
+                                        f"fold{outer}_split{j}_seed{seed}_{fam}_{c}")
+            per_split.append(mean_scores(est, va, axes))
+        a = np.array(per_split)
+        cands[name] = {"family": fam, "calibration": c, "tuned": tuned, "inner_val": a.tolist(),
+                       "inner_val_aae": float(a[:, 0].mean()), "inner_val_inclination": float(a[:, 1].mean())}
+        log(f"   fold {outer} seed {seed}: {name:<32s} inner val {a[:, 0].mean():8.3f} / {a[:, 1].mean():6.3f} "
+            f"(per split {np.round(a[:, 0], 2).tolist()})")
+    bar = [n for n, v in cands.items() if not v["tuned"]]
+    bar_incl = min(cands[n]["inner_val_inclination"] for n in bar)
     chosen = choose({k: (v["inner_val_aae"], v["inner_val_inclination"]) for k, v in cands.items()},
                     tie_margin, incl_margin, bar_incl)
+    for fam, est in learned.items():  # compared on the one split it was validated on
+        v = mean_scores(est, splits[learned_split][1], axes)
+        ref = cands[chosen]["inner_val"][learned_split]
+        cands[fam] = {"family": fam, "calibration": "learned", "tuned": True, "inner_val": [list(v)],
+                      "inner_val_aae": v[0], "inner_val_inclination": v[1], "checkpoint": getattr(est, "ckpt_path", None),
+                      "classical_on_its_split": ref}
+        log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (classical choice there: "
+            f"{ref[0]:.3f} / {ref[1]:.3f})")
+        if v[0] < ref[0] * (1.0 - tie_margin) and v[1] <= ref[1] + incl_margin:
+            chosen = fam
     log(f"   fold {outer} seed {seed}: chose {chosen}")
-    # the outer fold: the chosen candidate and every other column, one runner, one yardstick
+    # every classical candidate fitted again on all the outer training recordings, the learned
+    # ones as trained; the outer fold only scores (one runner, one yardstick)
+    fitted: Dict[str, Any] = {}
+    for name, fam, c, tuned in candidate_names(families, calibrations):
+        est, knobs = _fit_candidate(fam, c, tuned, others, axes, trials, seed, storage, f"fold{outer}_all_seed{seed}_{fam}_{c}")
+        cands[name]["knobs"] = knobs
+        fitted[name] = Calibrated(est, None, name=name)
+    fitted.update({k: Calibrated(v, None, name=k) for k, v in learned.items()})
     chosen_est = Calibrated(fitted[chosen], None, name=f"chosen: {chosen}")
     res = evaluate([chosen_est, *fitted.values()], test, axes=axes, plots=False, trajectories=False)
     means = {m: {k: v["mean"].get(k) for k in ("aae_deg", "inclination_deg", "n_recordings")}
              for m, v in res["methods"].items()}
     return {"fold": outer, "seed": seed, "recordings": [s.name for s in test], "candidates": cands,
-            "bar": list(bar), "chosen": chosen, "test": means, "seconds": time.perf_counter() - t0}
+            "bar": bar, "chosen": chosen, "test": means, "seconds": time.perf_counter() - t0}
 
 
 def best_classical(record: Dict[str, Any]) -> Tuple[str, float, float]:
@@ -276,12 +306,40 @@ def best_classical(record: Dict[str, Any]) -> Tuple[str, float, float]:
     return name, float(cols[name]["aae_deg"]), float(min(v["inclination_deg"] for v in cols.values()))
 
 
+def _inner_splits(mode: str, folds: List[list], i: int, fcfg, inner_cfg) -> Tuple[List[Tuple[list, list]], int, str]:
+    """The inner (training, validation) pairs of outer fold ``i`` and which of them crossval's
+    learned candidates were validated on. ``folds`` (the default with ≥ 3 folds): every other fold,
+    whole, validates in turn; ``fold`` / ``split``: crossval's one inner split
+    (:func:`tcn_ahrs.crossval.inner_split`)."""
+    from .crossval import inner_split
+    from .datasets import load_split
+
+    if mode not in ("auto", "folds", "fold", "split"):
+        raise ValueError(f"search.inner: expected auto, folds, fold or split, got {mode!r}")
+    if mode == "auto":
+        mode = "folds" if len(folds) >= 3 else "split"
+    if mode == "folds":
+        if len(folds) < 3:
+            raise ValueError(f"search.inner=folds needs at least 3 folds; this data has {len(folds)}")
+        others = [s for s in load_split(fcfg.data, "train") if s.has_gt]
+        order = [(i + k) % len(folds) for k in range(1, len(folds))]  # crossval's inner fold first
+        splits = []
+        for j in order:
+            names = {str(r) for r in folds[j]}
+            splits.append(([s for s in others if s.name not in names], [s for s in others if s.name in names]))
+        return splits, 0, f"inner validation: folds {order} in turn, whole"
+    with_mode = inner_cfg.copy()
+    with_mode.crossval.inner = mode
+    tr, va, desc = inner_split(with_mode, folds, i, fcfg)
+    return [([s for s in tr if s.has_gt], [s for s in va if s.has_gt])], 0, desc
+
+
 def search_main(cfg) -> Dict[str, Any]:
     """``tcn-ahrs search``: the nested family search over ``data.folds`` (module docstring)."""
     from omegaconf import OmegaConf
 
     from .config import SearchSection, check_keys
-    from .crossval import _fold_cfg, inner_split
+    from .crossval import _fold_cfg
     from .datasets import load_split
     from .training.setup import model_axes
 
@@ -310,15 +368,14 @@ def search_main(cfg) -> Dict[str, Any]:
     records: List[Dict[str, Any]] = []
     for i in idx:
         fcfg = _fold_cfg(cfg, i, out / f"fold{i}")
-        train, val, inner = inner_split(inner_cfg, folds, i, fcfg)
-        train = [s for s in train if s.has_gt]
-        val = [s for s in val if s.has_gt]
+        splits, learned_split, inner = _inner_splits(str(sc.inner), folds, i, fcfg, inner_cfg)
+        others = [s for s in load_split(fcfg.data, "train") if s.has_gt]
         test = [s for s in load_split(fcfg.data, "val") if s.has_gt]
         print(f"== outer fold {i}: scored on {[s.name for s in test]}; {inner}", flush=True)
         learned = _learned_candidates(learned_spec, i, axes)
         for seed in sc.seeds:
-            records.append(search_fold(i, train, val, test, axes, families, calibs, int(sc.trials), int(seed),
-                                       storage, learned, float(sc.tie_margin), float(sc.incl_margin)))
+            records.append(search_fold(i, splits, others, test, axes, families, calibs, int(sc.trials), int(seed),
+                                       storage, learned, learned_split, float(sc.tie_margin), float(sc.incl_margin)))
             (out / "search.json").write_text(json.dumps(_result(cfg, records, time.perf_counter() - t_start),
                                                         indent=1, default=str))
     result = _result(cfg, records, time.perf_counter() - t_start)
@@ -368,7 +425,7 @@ def search_markdown(result: Dict[str, Any]) -> str:
                   "| candidate | inner val AAE | inner val incl. | outer AAE | outer incl. | knobs |", "|---|---|---|---|---|---|"]
         for name, c in rec["candidates"].items():
             t = rec["test"].get(name, {})
-            knobs = ", ".join(f"{k}={v:.3g}" for k, v in c["knobs"].items())
+            knobs = ", ".join(f"{k}={v:.3g}" for k, v in (c.get("knobs") or {}).items()) if c.get("tuned") else "defaults"
             lines.append(f"| {name} | {c['inner_val_aae']:.2f} | {c['inner_val_inclination']:.2f} | "
                          f"{t.get('aae_deg', float('nan')):.2f} | {t.get('inclination_deg', float('nan')):.2f} | {knobs} |")
     return "\n".join(lines) + "\n"

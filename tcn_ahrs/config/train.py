@@ -119,7 +119,7 @@ class CrossvalSection:
 class SearchSection:
     """``search:`` (conf/search.yaml = train.yaml + this section; tcn_ahrs.search)."""
     folds: Optional[List[int]] = None  # outer fold indices to run (null: all of data.folds)
-    inner: str = "auto"                # inner validation: fold | split | auto (as crossval.inner)
+    inner: str = "auto"                # inner validation: folds (every other fold in turn) | fold | split | auto
     families: List[str] = field(default_factory=lambda: ["strapdown", "ecf", "mahony", "madgwick", "backbone"])
     calibrations: List[str] = field(default_factory=lambda: ["none", "gyro_bias", "full"])
     learned: Optional[Dict[str, str]] = None  # {family: crossval folder}: its fold checkpoints are candidates

@@ -1,0 +1,63 @@
+"""The nested family search (tcn_ahrs.search): the choice rule, and on simulated recordings a
+family that cannot win is not chosen, the search resumes from its SQLite studies, and its
+numbers are the evaluation runner's."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tcn_ahrs import search
+from tcn_ahrs.datasets.simulate import simulate
+from tcn_ahrs.evaluate import evaluate
+
+pytest.importorskip("optuna")
+
+# a device whose gyro reads 3 deg/s off on z and 1 deg/s on x: strapdown integration cannot win
+DEVICE = dict(gyro_bias_range_dps=(1.0, 3.0), gyro_bias_repeatability_dps=0.0, gyro_bias_rw_dps=0.0)
+
+
+def test_choose_prefers_simpler_within_the_tie_margin_and_guards_inclination():
+    c = {"backbone (tuned)": (1.00, 0.5), "madgwick (defaults)": (1.01, 0.5), "ecf (tuned)": (0.5, 2.0)}
+    # ecf's AAE is best but its inclination is 1.5 deg worse than the bar: not eligible
+    assert search.choose(c, tie_margin=0.02, incl_margin=0.05, incl_bar=0.5) == "madgwick (defaults)"
+    assert search.choose(c, tie_margin=0.0, incl_margin=0.05, incl_bar=0.5) == "backbone (tuned)"
+    assert search.choose(c, tie_margin=0.0, incl_margin=5.0, incl_bar=0.5) == "ecf (tuned)"
+    with pytest.raises(ValueError, match="diverged"):
+        search.choose({"a": (np.inf, np.inf)}, 0.0, 0.0)
+
+
+@pytest.fixture(scope="module")
+def recs():
+    return [simulate(p, 20.0, 100.0, seed=s, device_seed=3, axes=6, **DEVICE)
+            for s, p in enumerate(["walking", "slow_rotation", "walking", "fast_rotation"])]
+
+
+def test_a_family_that_cannot_win_is_not_chosen_and_the_search_resumes(recs, tmp_path):
+    train, val, test = recs[:2], recs[2:3], recs[3:]
+    storage = f"sqlite:///{tmp_path / 'search.db'}"
+    kw = dict(axes=6, families=["strapdown", "madgwick"], calibrations=["none", "gyro_bias"], trials=4, seed=0,
+              storage=storage, learned={}, learned_split=0, tie_margin=0.02, incl_margin=0.05, log=lambda _: None)
+    rec = search.search_fold(0, [(train, val)], train + val, test, **kw)
+    assert rec["chosen"] != "strapdown (defaults)"  # raw integration of the biased gyro
+    assert "+cal:gyro_bias" in rec["chosen"]  # the bias is the device's: calibrating it wins
+    raw = rec["test"]["strapdown (defaults)"]["aae_deg"]
+    assert rec["test"][f"chosen: {rec['chosen']}"]["aae_deg"] < 0.5 * raw
+    # the report's numbers are the runner's: the chosen column equals its own column
+    assert rec["test"][f"chosen: {rec['chosen']}"] == rec["test"][rec["chosen"]]
+    # a second run on the same storage continues the studies (no new trials): the same choice
+    again = search.search_fold(0, [(train, val)], train + val, test, **kw)
+    assert again["chosen"] == rec["chosen"] and again["test"] == rec["test"]
+    import optuna
+
+    studies = optuna.get_all_study_summaries(storage)
+    assert studies and all(s.n_trials == 4 for s in studies)
+
+
+def test_calibrated_wrapper_is_what_the_runner_scores(recs):
+    from tcn_ahrs import calibration
+
+    cal = calibration.fit_calibration(recs[:2], gyro="bias", acc="none", mag="none")
+    est = search.Calibrated(search.FAMILIES["madgwick"].build(6), cal, name="m")
+    aae, incl = search.mean_scores(est, recs[3:], 6)
+    res = evaluate([est], recs[3:], axes=6)["methods"]["m"]["mean"]
+    assert aae == pytest.approx(res["aae_deg"], rel=1e-12) and incl == pytest.approx(res["inclination_deg"], rel=1e-12)
