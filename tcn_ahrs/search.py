@@ -213,14 +213,20 @@ def _learned_candidates(spec: Dict[str, str], fold: int, label_axes: int) -> Dic
 
 
 def _fit_candidate(family: str, calib: str, tuned: bool, train: Sequence[ImuSequence], axes: int, trials: int,
-                   seed: int, storage: Optional[str], study: str) -> Tuple[Any, Dict[str, float]]:
-    """One classical candidate fitted on ``train``: its static calibration and (``tuned``) its
-    knobs. Returns (estimator, knobs)."""
+                   seed: int, storage: Optional[str], study: str,
+                   tune_seconds: Optional[float] = None) -> Tuple[Any, Dict[str, float]]:
+    """One classical candidate fitted on ``train``: its static calibration (whole recordings) and
+    (``tuned``) its knobs, on clips of ``tune_seconds`` (:func:`tcn_ahrs.tuning.tuning_clips`,
+    from 10 s before the first scored sample; None: whole recordings). Returns (estimator, knobs)."""
     fam = FAMILIES[family]
     cal = None if CALIBRATIONS[calib] is None else cal_mod.fit_calibration(train, strict=False, **CALIBRATIONS[calib])
     knobs = dict(fam.defaults)
     if tuned and fam.defaults:
-        knobs, _ = tune_family(fam, train, axes, trials, seed, storage, study, cal)
+        seqs = train
+        if tune_seconds:
+            from .tuning import tuning_clips
+            seqs = tuning_clips(train, float(tune_seconds), 10.0, None)[0]
+        knobs, _ = tune_family(fam, seqs, axes, trials, seed, storage, study, cal)
     return Calibrated(fam.build(axes, **knobs), cal), knobs
 
 
@@ -242,7 +248,8 @@ def candidate_names(families: Sequence[str], calibrations: Sequence[str]) -> Lis
 def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequence[ImuSequence],
                 test: Sequence[ImuSequence], axes: int, families: Sequence[str], calibrations: Sequence[str],
                 trials: int, seed: int, storage: Optional[str], learned: Dict[str, Any], learned_split: int,
-                tie_margin: float, incl_margin: float, log: Callable[[str], None] = print) -> Dict[str, Any]:
+                tie_margin: float, incl_margin: float, log: Callable[[str], None] = print,
+                tune_seconds: Optional[float] = None) -> Dict[str, Any]:
     """Steps 2-4 of the module docstring for one outer fold and one seed.
 
     ``splits``: the inner (training, validation) pairs (every other fold as validation in turn,
@@ -259,7 +266,7 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
         per_split = []
         for j, (tr, va) in enumerate(splits):
             est, knobs = _fit_candidate(fam, c, tuned, tr, axes, trials, seed, storage,
-                                        f"fold{outer}_split{j}_seed{seed}_{fam}_{c}")
+                                        f"fold{outer}_split{j}_seed{seed}_{fam}_{c}", tune_seconds)
             per_split.append(mean_scores(est, va, axes))
         a = np.array(per_split)
         cands[name] = {"family": fam, "calibration": c, "tuned": tuned, "inner_val": a.tolist(),
@@ -285,7 +292,8 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
     # ones as trained; the outer fold only scores (one runner, one yardstick)
     fitted: Dict[str, Any] = {}
     for name, fam, c, tuned in candidate_names(families, calibrations):
-        est, knobs = _fit_candidate(fam, c, tuned, others, axes, trials, seed, storage, f"fold{outer}_all_seed{seed}_{fam}_{c}")
+        est, knobs = _fit_candidate(fam, c, tuned, others, axes, trials, seed, storage,
+                                    f"fold{outer}_all_seed{seed}_{fam}_{c}", tune_seconds)
         cands[name]["knobs"] = knobs
         fitted[name] = Calibrated(est, None, name=name)
     fitted.update({k: Calibrated(v, None, name=k) for k, v in learned.items()})
@@ -334,6 +342,29 @@ def _inner_splits(mode: str, folds: List[list], i: int, fcfg, inner_cfg) -> Tupl
     return [([s for s in tr if s.has_gt], [s for s in va if s.has_gt])], 0, desc
 
 
+def auto_folds(cfg, k: int = 3) -> List[List[str]]:
+    """Your own recordings without ``data.folds``: every recording under ``data.root`` (or
+    ``data.train``) trains, dealt round-robin into ``k`` folds by sorted name; written into
+    ``cfg.data`` (folds, train) and printed. Needs at least ``k`` recordings."""
+    from omegaconf import open_dict
+
+    from .datasets import loader, resolve_root
+
+    if cfg.data.name == "simulated":
+        raise ValueError("search: the simulator has splits, not folds; use data=generic (your recordings), "
+                         "broad, euroc, tumvi or oxiod")
+    names = [str(r) for r in (cfg.data.get("train") or [])] or sorted(loader(cfg.data.name).list_recordings(resolve_root(cfg.data)))
+    if len(names) < k:
+        raise ValueError(f"search: {len(names)} recordings under {cfg.data.get('root')} ({names}); the nested "
+                         f"search needs at least {k} (one per fold), or give data.folds")
+    folds = [names[j::k] for j in range(k)]
+    with open_dict(cfg.data):
+        cfg.data.train = names
+        cfg.data.folds = folds
+    print(f"search: no data.folds given: {len(names)} recordings dealt into {k} folds {folds}", flush=True)
+    return folds
+
+
 def search_main(cfg) -> Dict[str, Any]:
     """``tcn-ahrs search``: the nested family search over ``data.folds`` (module docstring)."""
     from omegaconf import OmegaConf
@@ -347,8 +378,7 @@ def search_main(cfg) -> Dict[str, Any]:
     check_keys(sc, SearchSection, "search")
     folds = list(OmegaConf.to_container(cfg.data.get("folds"), resolve=True) or []) if cfg.data.get("folds") else []
     if not folds:
-        raise ValueError(f"search: data '{cfg.data.name}' defines no data.folds (lists of training recordings to "
-                         "hold out); add them to its config (data=generic: data.folds=[[a,b],[c,d],[e,f]])")
+        folds = auto_folds(cfg)
     idx = list(sc.folds) if sc.get("folds") is not None else list(range(len(folds)))
     inner_cfg = OmegaConf.create({"crossval": {"inner": str(sc.inner)}, "data": OmegaConf.to_container(cfg.data)})
     out = Path(str(sc.get("out") or f"runs/search/{cfg.data.name}_{model_axes(cfg)}"))
@@ -375,7 +405,8 @@ def search_main(cfg) -> Dict[str, Any]:
         learned = _learned_candidates(learned_spec, i, axes)
         for seed in sc.seeds:
             records.append(search_fold(i, splits, others, test, axes, families, calibs, int(sc.trials), int(seed),
-                                       storage, learned, learned_split, float(sc.tie_margin), float(sc.incl_margin)))
+                                       storage, learned, learned_split, float(sc.tie_margin), float(sc.incl_margin),
+                                       tune_seconds=sc.get("tune_seconds")))
             (out / "search.json").write_text(json.dumps(_result(cfg, records, time.perf_counter() - t_start),
                                                         indent=1, default=str))
     result = _result(cfg, records, time.perf_counter() - t_start)

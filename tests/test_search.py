@@ -61,3 +61,31 @@ def test_calibrated_wrapper_is_what_the_runner_scores(recs):
     aae, incl = search.mean_scores(est, recs[3:], 6)
     res = evaluate([est], recs[3:], axes=6)["methods"]["m"]["mean"]
     assert aae == pytest.approx(res["aae_deg"], rel=1e-12) and incl == pytest.approx(res["inclination_deg"], rel=1e-12)
+
+
+def test_own_device_command_on_generic_recordings(tmp_path, capsys):
+    """`tcn-ahrs search data=generic data.root=DIR`: recordings dealt into 3 folds, the report
+    written, its chosen column's numbers the runner's."""
+    import json
+
+    import h5py
+
+    from tcn_ahrs.cli import main
+
+    root = tmp_path / "mine"
+    root.mkdir()
+    for i, prof in enumerate(["walking", "slow_rotation", "fast_rotation"]):
+        s = simulate(prof, 15.0, 100.0, seed=i, device_seed=3)
+        with h5py.File(root / f"rec{i}.h5", "w") as f:
+            for key, val in (("t", s.time), ("gyr", s.gyro), ("acc", s.accel), ("mag", s.mag), ("quat", s.quat)):
+                f[key] = val
+    out = tmp_path / "search"
+    main(["search", "data=generic", f"data.root={root}", "search.trials=2", "search.seeds=[0]",
+          "search.families=[strapdown,madgwick]", "search.calibrations=[none,gyro_bias]", f"search.out={out}",
+          f"hydra.run.dir={tmp_path / 'hydra'}"])
+    res = json.loads((out / "search.json").read_text())
+    assert [r["fold"] for r in res["rows"]] == [0, 1, 2]
+    assert "dealt into 3 folds" in capsys.readouterr().out
+    for rec, row in zip(res["folds"], res["rows"]):
+        assert row["aae_deg"] == rec["test"][rec["chosen"]]["aae_deg"]
+    assert (out / "search.md").read_text().startswith("# Family search: generic")

@@ -124,6 +124,7 @@ class SearchSection:
     calibrations: List[str] = field(default_factory=lambda: ["none", "gyro_bias", "full"])
     learned: Optional[Dict[str, str]] = None  # {family: crossval folder}: its fold checkpoints are candidates
     trials: int = 40                   # Optuna trials per family x calibration and fold (the defaults first)
+    tune_seconds: Optional[float] = None  # tune on clips this long of each recording (null: whole)
     seeds: List[int] = field(default_factory=lambda: [0, 1, 2])   # sampler seeds: every fold over each
     tie_margin: float = 0.02           # a simpler family within 2 % of the best inner-validation AAE wins
     incl_margin: float = 0.05          # deg: no candidate with an inclination worse than the best by more
