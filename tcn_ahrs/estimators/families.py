@@ -1,0 +1,125 @@
+"""The estimator families the search (:mod:`tcn_ahrs.search`) chooses among, each with its
+knobs' ranges and defaults, the static calibrations they run on, and the one scoring of a
+candidate (mean AAE and inclination with the yardstick of :mod:`tcn_ahrs.metrics`)."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+
+import numpy as np
+
+from .. import calibration as cal_mod
+from ..metrics import scored_metric
+from ..sequence import ImuSequence
+from .base import initial_state
+
+
+# ------------------------------------------------------------------------------ families
+
+@dataclass(frozen=True)
+class Family:
+    """A classical family: ``build(axes, **knobs)`` -> estimator; ``space(trial)`` -> knobs (an
+    Optuna trial; log-uniform ranges around the authors' defaults); ``defaults`` are what the
+    study tries first (enqueued), so the tuned filter starts from the untuned one."""
+
+    name: str
+    build: Callable[..., Any]
+    space: Callable[[Any], Dict[str, float]]
+    defaults: Dict[str, float] = field(default_factory=dict)
+
+
+def _raw(axes: int, **_):
+    from .raw import RawIntegration
+    return RawIntegration(axes=6)
+
+
+def _classical(method: str):
+    def build(axes: int, **knobs):
+        from . import registry
+        return registry.build(method, axes, **knobs)
+    return build
+
+
+def _backbone(axes: int, **knobs):
+    from .backbone import Backbone
+    own = {"tau_acc", "tau_mag", "motion_bias", "rest_bias", "bias_clip", "mag_rejection"}
+    return Backbone(axes=axes, **{k: v for k, v in knobs.items() if k in own},
+                    extra={k: v for k, v in knobs.items() if k not in own} or None)
+
+
+def _backbone_space(t) -> Dict[str, float]:
+    # VQF's full parameter set: inclination and heading time constants, bias estimation (its
+    # clip, sigmas, forgetting), rest detection (thresholds and times), disturbance rejection
+    return {"tau_acc": t.suggest_float("tau_acc", 0.5, 30.0, log=True),
+            "tau_mag": t.suggest_float("tau_mag", 1.0, 60.0, log=True),
+            "motion_bias": float(t.suggest_categorical("motion_bias", [1.0, 0.0])),
+            "mag_rejection": float(t.suggest_categorical("mag_rejection", [1.0, 0.0])),
+            "bias_clip": t.suggest_float("bias_clip", 0.5, 15.0, log=True),
+            "bias_sigma_init": t.suggest_float("bias_sigma_init", 0.1, 10.0, log=True),
+            "bias_sigma_motion": t.suggest_float("bias_sigma_motion", 0.01, 1.0, log=True),
+            "bias_sigma_rest": t.suggest_float("bias_sigma_rest", 0.003, 0.3, log=True),
+            "bias_forgetting_time": t.suggest_float("bias_forgetting_time", 10.0, 1000.0, log=True),
+            "rest_th_gyro": t.suggest_float("rest_th_gyro", 0.5, 10.0, log=True),
+            "rest_th_acc": t.suggest_float("rest_th_acc", 0.1, 2.0, log=True),
+            "rest_min_time": t.suggest_float("rest_min_time", 0.3, 5.0, log=True)}
+
+
+FAMILIES: Dict[str, Family] = {f.name: f for f in [
+    Family("strapdown", _raw, lambda t: {}),
+    Family("ecf", _classical("ecf"),
+           lambda t: {"k_norm": t.suggest_float("k_norm", 0.01, 5.0, log=True),
+                      "a_min": t.suggest_float("a_min", 0.1, 5.0, log=True)}, {"k_norm": 0.5, "a_min": 1.0}),
+    Family("mahony", _classical("mahony"),
+           lambda t: {"k_p": t.suggest_float("k_p", 0.01, 10.0, log=True),
+                      "k_i": t.suggest_float("k_i", 1e-4, 1.0, log=True)}, {"k_p": 1.0, "k_i": 0.3}),
+    Family("madgwick", _classical("madgwick"),
+           lambda t: {"beta": t.suggest_float("beta", 1e-3, 0.5, log=True)}, {"beta": 0.033}),
+    Family("backbone", _backbone, _backbone_space,
+           {"tau_acc": 3.0, "tau_mag": 9.0, "motion_bias": 1.0, "mag_rejection": 1.0, "bias_clip": 2.0,
+            "bias_sigma_init": 0.5, "bias_sigma_motion": 0.1, "bias_sigma_rest": 0.03,
+            "bias_forgetting_time": 100.0, "rest_th_gyro": 2.0, "rest_th_acc": 0.5, "rest_min_time": 1.5}),
+]}
+
+SIMPLICITY = ("strapdown", "ecf", "mahony", "madgwick", "backbone", "residual", "closed_loop", "paper")
+"""Ties go to the earlier (simpler) family."""
+
+CALIBRATIONS: Dict[str, Optional[Dict[str, str]]] = {
+    "none": None,
+    "gyro_bias": {"gyro": "bias", "acc": "none", "mag": "none"},
+    "full": {"gyro": "full", "acc": "bias", "mag": "full"},
+}
+"""Static calibrations a classical candidate runs on (:func:`tcn_ahrs.calibration.fit_calibration`)."""
+
+
+class Calibrated:
+    """An estimator run on statically calibrated signals; name ``"<name> +cal"`` unless given."""
+
+    def __init__(self, inner, cal: Optional[cal_mod.StaticCalibration], name: Optional[str] = None):
+        self.inner, self.cal = inner, cal
+        self.name = name or (inner.name if cal is None else f"{inner.name} +cal")
+        self.axes = getattr(inner, "axes", None)
+        self.heading_free = bool(getattr(inner, "heading_free", False))
+
+    def run(self, seq: ImuSequence, init_quat=None, init_index: int = 0):
+        return self.inner.run(seq if self.cal is None else self.cal.apply(seq), init_quat, init_index)
+
+
+def mean_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[float, float]:
+    """(mean AAE, mean inclination) of ``est`` over ``seqs`` with the one yardstick; inf if it
+    diverges anywhere."""
+    aae, incl = [], []
+    for s in seqs:
+        view = s.without_mag() if (axes == 6 and s.has_mag) else s
+        k0, q0 = initial_state(s)
+        try:
+            q = est.run(view, q0, k0).quat
+        except (FloatingPointError, np.linalg.LinAlgError, ValueError):
+            return math.inf, math.inf
+        if not np.all(np.isfinite(q)):
+            return math.inf, math.inf
+        aae.append(scored_metric(s, q, view.num_axes))
+        incl.append(scored_metric(s, q, view.num_axes, "inclination_deg"))
+    return float(np.mean(aae)), float(np.mean(incl))
+
+
