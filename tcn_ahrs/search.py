@@ -171,7 +171,7 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
         cands[fam] = {"family": fam, "calibration": "learned", "tuned": True, "inner_val": [list(v)],
                       "inner_val_aae": v[0], "inner_val_inclination": v[1], "checkpoint": getattr(est, "ckpt_path", None),
                       "classical_on_its_split": ref}
-        log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (classical choice there: "
+        log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (the choice so far there: "
             f"{ref[0]:.3f} / {ref[1]:.3f})")
         if v[0] < ref[0] * (1.0 - tie_margin) and v[1] <= ref[1] + incl_margin:
             chosen = fam

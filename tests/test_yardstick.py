@@ -99,3 +99,11 @@ def test_vqf_started_at_ground_truth_is_the_backbone(walk):
         if axes == 6:
             h = metrics.broad_error_angles(q0[None], q_vqf[:1])["heading"]
             assert abs(np.degrees(h[0])) < 0.5
+
+
+def test_aae_and_inclination_alone_equal_the_tables(walk):
+    est = _tilted(walk, lambda t: 8.0 * np.clip(1.0 - t, 0.0, None) + 0.05 * t + 1.0)
+    for axes in (6, 9):
+        m = metrics.sequence_metrics(walk, est, axes)
+        a, i = metrics.aae_and_inclination(walk, est, axes)
+        assert a == pytest.approx(m["aae_deg"], rel=1e-12) and i == pytest.approx(m["inclination_deg"], rel=1e-12)

@@ -10,7 +10,7 @@ from typing import Any, Callable, Dict, Optional, Sequence, Tuple
 import numpy as np
 
 from .. import calibration as cal_mod
-from ..metrics import scored_metric
+from ..metrics import aae_and_inclination
 from ..sequence import ImuSequence
 from .base import initial_state
 
@@ -118,8 +118,9 @@ def mean_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[float, flo
             return math.inf, math.inf
         if not np.all(np.isfinite(q)):
             return math.inf, math.inf
-        aae.append(scored_metric(s, q, view.num_axes))
-        incl.append(scored_metric(s, q, view.num_axes, "inclination_deg"))
+        a, i = aae_and_inclination(s, q, view.num_axes)
+        aae.append(a)
+        incl.append(i)
     return float(np.mean(aae)), float(np.mean(incl))
 
 
