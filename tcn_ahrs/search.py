@@ -137,7 +137,7 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                 test: Sequence[ImuSequence], axes: int, families: Sequence[str], calibrations: Sequence[str],
                 trials: int, seed: int, storage: Optional[str], learned: Dict[str, Any], learned_split: int,
                 tie_margin: float, incl_margin: float, log: Callable[[str], None] = print,
-                tune_seconds: Optional[float] = None) -> Dict[str, Any]:
+                tune_seconds: Optional[float] = None, save_dir: Optional[Path] = None) -> Dict[str, Any]:
     """Steps 2-4 of the module docstring for one outer fold and one seed.
 
     ``splits``: the inner (training, validation) pairs (every other fold as validation in turn,
@@ -145,7 +145,8 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
     validation set, the choice reads the mean over the splits. A learned candidate (trained by
     crossval on split ``learned_split``) is compared on that split alone. The chosen classical
     candidate is fitted again on ``others`` (every recording but the outer fold's) and scored on
-    ``test`` beside every other candidate fitted the same way. Returns the fold's record."""
+    ``test`` beside every other candidate fitted the same way; a classical choice is written to
+    ``save_dir/fold<i>_seed<s>.json`` (what ``tcn-ahrs evaluate ckpt=`` reads). Returns the fold's record."""
     from .evaluate import evaluate
 
     t0 = time.perf_counter()
@@ -184,6 +185,10 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                                     f"fold{outer}_all_seed{seed}_{fam}_{c}", tune_seconds)
         cands[name]["knobs"] = knobs
         fitted[name] = Calibrated(est, None, name=name)
+        if name == chosen and save_dir is not None:
+            from .estimators.families import save_estimator
+            save_estimator(Path(save_dir) / f"fold{outer}_seed{seed}.json", fam, axes, knobs, est.cal,
+                           {"outer_fold": outer, "seed": seed, "chosen": name, "fitted_on": [s.name for s in others]})
     fitted.update({k: Calibrated(v, None, name=k) for k, v in learned.items()})
     chosen_est = Calibrated(fitted[chosen], None, name=f"chosen: {chosen}")
     res = evaluate([chosen_est, *fitted.values()], test, axes=axes, plots=False, trajectories=False)
@@ -294,16 +299,51 @@ def search_main(cfg) -> Dict[str, Any]:
         for seed in sc.seeds:
             records.append(search_fold(i, splits, others, test, axes, families, calibs, int(sc.trials), int(seed),
                                        storage, learned, learned_split, float(sc.tie_margin), float(sc.incl_margin),
-                                       tune_seconds=sc.get("tune_seconds")))
+                                       tune_seconds=sc.get("tune_seconds"), save_dir=out))
             (out / "search.json").write_text(json.dumps(_result(cfg, records, time.perf_counter() - t_start),
                                                         indent=1, default=str))
     result = _result(cfg, records, time.perf_counter() - t_start)
+    result["release"] = release(cfg, result, out, axes, families, int(sc.trials), storage, sc.get("tune_seconds"))
     (out / "search.json").write_text(json.dumps(result, indent=1, default=str))
     md = search_markdown(result)
     (out / "search.md").write_text(md)
     print(md)
     print(f"results in {out}")
     return result
+
+
+def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequence[str], trials: int,
+            storage: Optional[str], tune_seconds: Optional[float]) -> Dict[str, Any]:
+    """The estimator to ship: the candidate chosen most often over the outer folds and seeds (a
+    tie goes to the simpler family); a classical one is fitted on every training recording,
+    whole, and written as ``estimator.json`` (``tcn-ahrs evaluate ckpt=.../estimator.json``); a
+    learned one is its recipe trained on every recording (the command is printed)."""
+    from collections import Counter
+
+    from .datasets import load_split
+    from .estimators.families import save_estimator
+
+    counts = Counter(r["chosen"] for r in result["rows"])
+    rank = lambda k: SIMPLICITY.index(k.split(" ")[0]) if k.split(" ")[0] in SIMPLICITY else len(SIMPLICITY)  # noqa: E731
+    name = min(counts, key=lambda k: (-counts[k], rank(k)))
+    rec = next(r for r in result["folds"] if r["chosen"] == name)["candidates"][name]
+    info = {"chosen": name, "times_chosen": counts[name], "runs": len(result["rows"]), "family": rec["family"]}
+    if rec["calibration"] == "learned":
+        info["how"] = (f"a learned family: train its recipe on every training recording "
+                       f"(tcn-ahrs train experiment=<its recipe> train.all_recordings=true); its fold checkpoints: "
+                       f"{rec.get('checkpoint')}")
+        print(f"release: {name} ({counts[name]} of {len(result['rows'])} runs): {info['how']}")
+        return info
+    every = [s for s in load_split(cfg.data, "trainval") if s.has_gt]
+    est, knobs = _fit_candidate(rec["family"], rec["calibration"], rec["tuned"], every, axes, trials, 0, storage,
+                                f"release_{rec['family']}_{rec['calibration']}", tune_seconds)
+    path = out / "estimator.json"
+    save_estimator(path, rec["family"], axes, knobs, est.cal,
+                   {"dataset": str(cfg.data.name), "recordings": [s.name for s in every], "chosen": name,
+                    "times_chosen": f"{counts[name]} of {len(result['rows'])}", "command": "tcn-ahrs search"})
+    info.update(path=str(path), knobs=knobs)
+    print(f"release: {name} ({counts[name]} of {len(result['rows'])} runs), fitted on {len(every)} recordings: {path}")
+    return info
 
 
 def _result(cfg, records: List[Dict[str, Any]], seconds: float) -> Dict[str, Any]:

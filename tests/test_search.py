@@ -89,3 +89,38 @@ def test_own_device_command_on_generic_recordings(tmp_path, capsys):
     for rec, row in zip(res["folds"], res["rows"]):
         assert row["aae_deg"] == rec["test"][rec["chosen"]]["aae_deg"]
     assert (out / "search.md").read_text().startswith("# Family search: generic")
+    assert res["release"]["runs"] == 3 and (out / "estimator.json").is_file() == (res["release"]["family"] != "closed_loop")
+    # the report's number = a separate `tcn-ahrs evaluate` of that fold's chosen estimator file
+    rec = res["folds"][0]
+    main(["evaluate", "data=generic", f"data.root={root}", f"data.test={rec['recordings']}", "data.split=test",
+                f"ckpt={out / 'fold0_seed0.json'}", f"out={tmp_path / 'ev'}", "plots=false", "trajectories=false",
+                f"hydra.run.dir={tmp_path / 'hydra2'}"])
+    got = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert got["methods"]["Learned AHRS"]["mean"]["aae_deg"] == pytest.approx(res["rows"][0]["aae_deg"], rel=1e-12)
+
+
+def test_released_estimator_file_runs_in_evaluate_and_export_refuses_it(tmp_path, recs):
+    import json
+
+    from tcn_ahrs import calibration
+    from tcn_ahrs.estimators.families import load_estimator, save_estimator
+
+    cal = calibration.fit_calibration(recs[:2], gyro="bias", acc="none", mag="none")
+    path = tmp_path / "estimator.json"
+    save_estimator(path, "madgwick", 6, {"beta": 0.02}, cal, {"dataset": "simulated"})
+    est = load_estimator(path, name="chosen")
+    ref = search.Calibrated(search.FAMILIES["madgwick"].build(6, beta=0.02), cal, name="ref")
+    res = evaluate([est, ref], recs[3:], axes=6)["methods"]
+    assert res["chosen"]["mean"]["aae_deg"] == res["ref"]["mean"]["aae_deg"]
+    doc = json.loads(path.read_text())
+    doc["family"] = "kalman"
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="field 'family'"):
+        load_estimator(tmp_path / "bad.json")
+    from omegaconf import OmegaConf
+
+    from tcn_ahrs.export import export_main
+    cfg = OmegaConf.create({"ckpt": str(path), "out": str(tmp_path / "m.pt"), "format": "torchscript", "mode": "both",
+                            "rate": None, "overwrite": False})
+    with pytest.raises(ValueError, match="classical estimator chosen by tcn-ahrs search"):
+        export_main(cfg)

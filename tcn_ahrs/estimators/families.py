@@ -124,3 +124,55 @@ def mean_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[float, flo
     return float(np.mean(aae)), float(np.mean(incl))
 
 
+
+
+# ------------------------------------------------------------------------------ the released file
+
+ESTIMATOR_FORMAT = "tcn-ahrs classical estimator v1"
+
+
+def save_estimator(path, family: str, axes: int, knobs: Dict[str, float],
+                   cal: Optional[cal_mod.StaticCalibration], provenance: Optional[Dict[str, Any]] = None) -> None:
+    """A chosen classical candidate as a JSON file that ``tcn-ahrs evaluate ckpt=FILE`` runs:
+    family, axes, knobs, the static calibration's constants. Written atomically (a temporary
+    file renamed over the target): a killed write never leaves half a file."""
+    import json
+    import os
+    from pathlib import Path
+
+    if family not in FAMILIES:
+        raise ValueError(f"save_estimator: family {family!r} is not a classical family ({list(FAMILIES)})")
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"format": ESTIMATOR_FORMAT, "family": family, "axes": int(axes), "knobs": dict(knobs),
+           "calibration": None if cal is None else cal.to_dict(), "provenance": dict(provenance or {})}
+    tmp = p.with_name(p.name + ".partial")
+    tmp.write_text(json.dumps(doc, indent=1, default=float))
+    os.replace(tmp, p)
+
+
+def is_estimator_file(path) -> bool:
+    return str(path).endswith(".json")
+
+
+def load_estimator(path, name: Optional[str] = None) -> Calibrated:
+    """The estimator of a file written by :func:`save_estimator`; ValueError naming the file and
+    the field when it is not one."""
+    import json
+    from pathlib import Path
+
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{p}: no such estimator file (written by tcn-ahrs search)") from None
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{p}: not JSON ({e}); expected an estimator file written by tcn-ahrs search") from None
+    if not isinstance(doc, dict) or doc.get("format") != ESTIMATOR_FORMAT:
+        raise ValueError(f"{p}: field 'format': expected {ESTIMATOR_FORMAT!r}, got {doc.get('format') if isinstance(doc, dict) else doc!r}")
+    fam = doc.get("family")
+    if fam not in FAMILIES:
+        raise ValueError(f"{p}: field 'family': expected one of {list(FAMILIES)}, got {fam!r}")
+    cal = None if doc.get("calibration") is None else cal_mod.StaticCalibration.from_dict(doc["calibration"])
+    est = FAMILIES[fam].build(int(doc["axes"]), **dict(doc.get("knobs") or {}))
+    return Calibrated(est, cal, name=name or f"{fam} ({p.stem})")

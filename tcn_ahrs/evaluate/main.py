@@ -40,8 +40,15 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     explicit = cfg.get("out") or (str(Path(str(cfg.run_dir)) / "eval") if cfg.get("run_dir") else None)
     out = str(output_dir(explicit, Path("runs") / "evaluate"))
     refuse_earlier_output(out, bool(cfg.get("overwrite", _D.overwrite)), "evaluate")  # before any work
-    ck = load_checkpoint(cfg.ckpt)
+    from ..estimators.families import is_estimator_file, load_estimator
+
     axes = int(cfg.data.get("axes", 9))
+    if is_estimator_file(cfg.ckpt):  # a classical family chosen by tcn-ahrs search
+        learned = load_estimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name))
+        axes = min(axes, int(learned.axes or axes))
+        seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
+        return _run(cfg, learned, seqs, axes, out)
+    ck = load_checkpoint(cfg.ckpt)
     if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
         # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
         print(f"note: {cfg.ckpt} is a 6-axis model: the magnetometer is not used and every method "
@@ -49,14 +56,19 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         axes = 6
     check_layout(ck, axes, cfg.ckpt)
     seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
-    if not seqs:
-        raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
-                         f"'{cfg.data.split}' (root {cfg.data.get('root')})")
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
                                other_rate=str(cfg.get("other_rate", _D.other_rate)))
+    return _run(cfg, learned, seqs, axes, out)
+
+
+def _run(cfg: DictConfig, learned, seqs, axes: int, out: str) -> Dict[str, Any]:
+    """The chosen estimator + Raw IMU (+ ``baselines``) through the runner, written to ``out``."""
     from ..estimators.registry import baseline_estimators, load_plugins
 
+    if not seqs:
+        raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
+                         f"'{cfg.data.split}' (root {cfg.data.get('root')})")
     load_plugins(cfg.get("plugins"))
     estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
     with staged_output(out, bool(cfg.get("overwrite", _D.overwrite)), "evaluate") as stage:
