@@ -123,6 +123,7 @@ class SearchSection:
     families: List[str] = field(default_factory=lambda: ["strapdown", "ecf", "mahony", "madgwick", "backbone"])
     calibrations: List[str] = field(default_factory=lambda: ["none", "gyro_bias", "full"])
     learned: Optional[Dict[str, str]] = None  # {family: crossval folder}: its fold checkpoints are candidates
+    learned_checkpoint: str = "last"   # last (end of schedule: unbiased on the inner fold) | selected
     trials: int = 40                   # Optuna trials per family x calibration and fold (the defaults first)
     tune_seconds: Optional[float] = None  # tune on clips this long of each recording (null: whole)
     seeds: List[int] = field(default_factory=lambda: [0, 1, 2])   # sampler seeds: every fold over each
