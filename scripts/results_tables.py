@@ -23,6 +23,11 @@ Blocks (:data:`BLOCKS`):
 ``deploy`` (docs/deployment.md)
     The speed benchmark's ``deploy`` section (``tcn-ahrs benchmark speed '+speed.sections=[deploy]'``
     → ``speed.json``): every runtime side by side and the shipped models' footprint.
+``search_<dataset>`` (docs/results.md)
+    The nested family search (``tcn-ahrs search data=<dataset> ...`` → ``runs/search/<dataset>/summary.json``,
+    copied to ``docs/results/json/search_<dataset>.json``): per outer fold the choice of each seed
+    beside the best classical filter with its defaults, raw and calibrated
+    (:func:`tcn_ahrs.search.summary_markdown`, the run's own ``search.md`` summary).
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -126,7 +131,30 @@ class Block(NamedTuple):
     files: Tuple[str, ...]                      # where the block stands
 
 
+def _search_summary(result: Mapping[str, Any]) -> str:
+    """The search's command (from its recorded config) and its summary table."""
+    from tcn_ahrs.search import summary_markdown
+
+    cfg = result.get("config") or {}
+    hy = lambda v: "[" + ",".join(str(x) for x in v) + "]" if isinstance(v, list) else (  # noqa: E731
+        "{" + ", ".join(f"{k}: {x}" for k, x in v.items()) + "}" if isinstance(v, dict) else str(v))
+    parts = [f"data={result['dataset']}", f"search.trials={cfg.get('trials')}", f"'search.seeds={hy(cfg.get('seeds'))}'"]
+    from tcn_ahrs.config import SearchSection
+
+    default = SearchSection()
+    for key in ("families", "calibrations", "learned"):
+        if cfg.get(key) and cfg[key] != getattr(default, key):
+            parts.append(f"'search.{key}={hy(cfg[key])}'")
+    if cfg.get("tune_seconds"):
+        parts.append(f"search.tune_seconds={cfg['tune_seconds']}")
+    return f"`tcn-ahrs search {' '.join(parts)}`\n\n" + summary_markdown(result)
+
+
+SEARCHES = tuple(p.stem[len("search_"):] for p in sorted((REPO / "docs/results/json").glob("search_*.json")))
+
 BLOCKS: Dict[str, Block] = {
+    **{f"search_{d}": Block(f"docs/results/json/search_{d}.json", _search_summary, ("docs/results.md",))
+       for d in SEARCHES},
     "transfer_summary": Block(TRANSFER_JSON, transfer_summary, ("README.md",)),
     "transfer_matrix": Block(TRANSFER_JSON, transfer_matrix, ("docs/results.md",)),
     "deploy": Block(DEPLOY_JSON, lambda result: _deploy_markdown(result), ("docs/deployment.md",)),

@@ -313,6 +313,9 @@ def search_main(cfg) -> Dict[str, Any]:
     result = _result(cfg, records, time.perf_counter() - t_start)
     result["release"] = release(cfg, result, out, axes, families, int(sc.trials), storage, sc.get("tune_seconds"))
     (out / "search.json").write_text(json.dumps(result, indent=1, default=str))
+    # the per-fold rows alone (what docs/results.md's generated tables read; search.json has every candidate)
+    (out / "summary.json").write_text(json.dumps({k: result[k] for k in ("dataset", "axes", "seconds", "rows", "release",
+                                                                        "config")}, indent=1, default=str))
     md = search_markdown(result)
     (out / "search.md").write_text(md)
     print(md)
