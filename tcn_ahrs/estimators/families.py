@@ -114,7 +114,9 @@ def mean_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[float, flo
         k0, q0 = initial_state(s)
         try:
             q = est.run(view, q0, k0).quat
-        except (FloatingPointError, np.linalg.LinAlgError, ValueError):
+        except (FloatingPointError, ZeroDivisionError, np.linalg.LinAlgError, ValueError):
+            # a knob point the filter cannot run with (e.g. the backbone's numba kernel dividing by
+            # zero on OxIOD at tau_acc 1.06 s, rest_th_acc 0.2): scored as diverged, never chosen
             return math.inf, math.inf
         if not np.all(np.isfinite(q)):
             return math.inf, math.inf
