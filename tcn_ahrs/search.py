@@ -66,6 +66,12 @@ def tune_family(family: Family, seqs: Sequence[ImuSequence], axes: int, trials: 
     return family.space(optuna.trial.FixedTrial(best.params)), float(best.value)
 
 
+def simplicity_rank(name: str) -> int:
+    """Position of a candidate's family (its name's first word) in :data:`SIMPLICITY`; unknown last."""
+    family = name.split(" ")[0]
+    return SIMPLICITY.index(family) if family in SIMPLICITY else len(SIMPLICITY)
+
+
 def choose(candidates: Dict[str, Tuple[float, float]], tie_margin: float, incl_margin: float,
            incl_bar: Optional[float] = None) -> str:
     """The chosen candidate from ``{name: (inner-validation AAE, inclination)}``: among those whose
@@ -78,9 +84,8 @@ def choose(candidates: Dict[str, Tuple[float, float]], tie_margin: float, incl_m
     bar = min(v[1] for v in finite.values()) if incl_bar is None else incl_bar
     ok = {k: v for k, v in finite.items() if v[1] <= bar + incl_margin} or finite
     best = min(ok, key=lambda k: ok[k][0])
-    rank = lambda k: SIMPLICITY.index(k.split(" ")[0]) if k.split(" ")[0] in SIMPLICITY else len(SIMPLICITY)  # noqa: E731
     ties = [k for k, v in ok.items() if v[0] <= ok[best][0] * (1.0 + tie_margin)]
-    return min(ties, key=lambda k: (rank(k), ok[k][0]))
+    return min(ties, key=lambda k: (simplicity_rank(k), ok[k][0]))
 
 
 # ------------------------------------------------------------------------------ the nested search
@@ -335,8 +340,7 @@ def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequenc
     from .estimators.families import save_estimator
 
     counts = Counter(r["chosen"] for r in result["rows"])
-    rank = lambda k: SIMPLICITY.index(k.split(" ")[0]) if k.split(" ")[0] in SIMPLICITY else len(SIMPLICITY)  # noqa: E731
-    name = min(counts, key=lambda k: (-counts[k], rank(k)))
+    name = min(counts, key=lambda k: (-counts[k], simplicity_rank(k)))
     rec = next(r for r in result["folds"] if r["chosen"] == name)["candidates"][name]
     info = {"chosen": name, "times_chosen": counts[name], "runs": len(result["rows"]), "family": rec["family"]}
     if rec["calibration"] == "learned":
