@@ -25,14 +25,10 @@ The yardstick (``align="protocol"``, the default everywhere; :class:`Yardstick`)
       (``seq.meta["heading_reference"] == "magnetic_north"``: BROAD, the simulator) are not
       aligned at all: the magnetometer makes heading observable, so it is scored as it is.
 
-Alignments (``align=``, used by AAE, AYE and AHE)
-    ``"heading"``: one rotation about the vertical (above). ``"first"`` (``True``, the
-    project's metric before 2026-12-05): one full navigation-frame rotation so that the
-    estimate equals ground truth at the first scored sample ``k0``,
-    ``R_est'[k] = R_gt[k0] R_est[k0]^T R_est[k]`` — it freezes the first scored sample's
-    error (inclination included) into the whole recording. ``"none"`` (``False``): the
-    estimate as it is. ``"protocol"``: the yardstick's choice for the recording and axes
-    (only where the recording is known: :func:`sequence_metrics`, :func:`scored_metric`).
+Alignments (``align=``, AAE/AYE/AHE): ``"heading"`` (above); ``"first"`` (``True``, before
+    2026-12-05): ``R_est'[k] = R_gt[k0] R_est[k0]^T R_est[k]`` at the first scored sample, which
+    freezes its error (inclination included) into the recording; ``"none"`` (``False``);
+    ``"protocol"``: the yardstick's choice (:func:`sequence_metrics`, :func:`scored_metric`).
 
 AAE — absolute attitude error (paper Eq. 29)
     ``AAE = sqrt( mean_k || Log(R_gt[k]^T R_est'[k]) ||^2 )`` over scored samples, in degrees:
@@ -167,6 +163,12 @@ class Yardstick:
 YARDSTICK = Yardstick()
 
 
+def alignment_name(align) -> str:
+    """``"protocol"`` or the :data:`ALIGNMENTS` name of ``align`` (True/False: "first"/"none"),
+    as results.json records it."""
+    return "protocol" if align == "protocol" else _alignment(align)
+
+
 def _alignment(align) -> str:
     if align is True:
         return "first"
@@ -187,9 +189,17 @@ def align_heading(q_gt, q_est, mask=None) -> np.ndarray:
     m = _scored_mask(qg, qe, mask)
     if not m.any():
         return qe.numpy().copy()
-    h = broad_error_angles(qg[m], qe[m])["heading"]
-    delta = math.atan2(float(np.mean(np.sin(h))), float(np.mean(np.cos(h))))
-    # q_err' = q_gt ⊗ q_est'^-1 = q_err ⊗ q_z(-delta): every heading error minus delta
+    return _rotated_about_up(qe, heading_offset(qg[m], qe[m]))
+
+
+def heading_offset(q_gt, q_est) -> float:
+    """Circular mean (rad) of the heading errors of ``q_est`` against ``q_gt`` ((M, 4), scored samples)."""
+    h = broad_error_angles(q_gt, q_est)["heading"]
+    return math.atan2(float(np.mean(np.sin(h))), float(np.mean(np.cos(h))))
+
+
+def _rotated_about_up(qe: torch.Tensor, delta: float) -> np.ndarray:
+    """``q_z(delta) ⊗ q_est`` (N, 4): ``q_err' = q_err ⊗ q_z(-delta)``, every heading error minus delta."""
     qz = torch.tensor([math.cos(delta / 2), 0.0, 0.0, math.sin(delta / 2)], dtype=torch.float64)
     return so3.quat_normalize(so3.quat_mul(qz.expand_as(qe), qe)).numpy()
 
@@ -295,9 +305,8 @@ def broad_errors(q_gt, q_est, mask=None, mode: str = "9d") -> Dict[str, float]:
         return {"total_deg": nan, "heading_deg": nan, "inclination_deg": nan, "heading_offset_deg": nan}
     offset = 0.0
     if mode == "6d":
-        h = broad_error_angles(qg[m], qe[m])["heading"]
-        offset = math.atan2(float(np.mean(np.sin(h))), float(np.mean(np.cos(h))))
-        qe = torch.as_tensor(align_heading(qg, qe, m))
+        offset = heading_offset(qg[m], qe[m])
+        qe = torch.as_tensor(_rotated_about_up(qe, offset))
     e = broad_error_angles(qg[m], qe[m])
     return {
         "total_deg": _rms(e["total"]) * RAD2DEG,
@@ -379,8 +388,7 @@ def aae_and_inclination(seq, quat_est, axes: Optional[int] = None, yardstick: Ya
 
 
 def scored_metric(seq, quat_est, axes: Optional[int] = None, key: str = "aae_deg", align="protocol") -> float:
-    """One number of :func:`sequence_metrics` (what the tuners minimise): the same protocol as
-    every table."""
+    """One number of :func:`sequence_metrics` (what the tuners minimise), the tables' protocol."""
     return float(sequence_metrics(seq, quat_est, axes, align)[key])
 
 

@@ -65,7 +65,8 @@ class LearnedEstimator:
         self.name = name
         # 9 axes: "auto" refers heading to magnetic north on magnetic-north ground truth (the
         # yardstick), else to the field at the start — what the streaming runtimes do ("init")
-        self.heading_ref = heading_ref_for(heading_ref, None) if heading_ref != "auto" else "auto"
+        heading_ref_for(heading_ref, None)  # a misspelt reference fails here, not at the first run
+        self.heading_ref = heading_ref
         # restart the open-loop ECF from the estimate every `reanchor` samples
         # (LearnedAHRS.run_sequence); None = the paper's single pass
         self.reanchor = None if reanchor is None else check_number(reanchor, "reanchor", int, 1)

@@ -94,8 +94,9 @@ def group_table(results: dict, metric_keys: Iterable[str] = ("aae_deg", "aye_deg
 def alignment_text(results: dict) -> str:
     """How the table's estimates were aligned, in words (results.json's ``align``; older files
     hold a bool: True = at the first scored sample)."""
-    a = results.get("align", "first")
-    a = {True: "first", False: "none"}.get(a, a) if isinstance(a, bool) else a
+    from ..metrics import alignment_name
+
+    a = alignment_name(results.get("align", "first"))
     return {"protocol": "the yardstick of docs/conventions.md: the first 2 s unscored, heading aligned once "
                         "about the vertical (9-axis on magnetic-north ground truth: none), inclination absolute",
             "heading": "heading aligned once about the vertical, inclination absolute",

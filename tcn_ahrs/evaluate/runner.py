@@ -13,7 +13,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..estimators.base import initial_state
-from ..metrics import HEADING_KEYS, extra_metrics, metric_keys, sequence_metrics
+from ..metrics import HEADING_KEYS, alignment_name, extra_metrics, metric_keys, sequence_metrics
 from ..sequence import ImuSequence
 from .files import plot_recording, safe_name, write_tum
 from .reports import results_markdown
@@ -36,11 +36,6 @@ def jsonable(v):
     if hasattr(v, "tolist") and callable(v.tolist):  # tensors and arrays
         return jsonable(v.tolist())
     return v
-
-
-def align_label(align) -> str:
-    """The alignment as results.json records it: ``protocol``, ``heading``, ``first`` or ``none``."""
-    return {True: "first", False: "none", None: "none"}.get(align, align) if isinstance(align, (bool, type(None))) else str(align)
 
 
 def _mean_metrics(rows: List[dict]) -> Dict[str, Optional[float]]:
@@ -169,7 +164,7 @@ def evaluate(
                 groups.setdefault(str(g), []).append(row)
         mres["groups"] = {g: _mean_metrics(r) for g, r in groups.items()}
 
-    results = {"dataset": dataset, "align": align_label(align), "recordings": rec_names, "methods": methods}
+    results = {"dataset": dataset, "align": alignment_name(align), "recordings": rec_names, "methods": methods}
     if out_dir is not None:
         write_artefacts(out_dir, results, sequences, estimates, plots=plots, trajectories=trajectories, align=align)
     return results
