@@ -2,12 +2,15 @@
 
     python scripts/model_card.py NAME CKPT CROSSVAL_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/NAME.md
     python scripts/model_card.py general6 CKPT LODO_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/general6.md
+    python scripts/model_card.py NAME MODEL SEARCH_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/NAME.md
 
 NAME: the experiment prefix (``broad9`` for ``experiment=broad9_res``); CROSSVAL_JSON: its nested
 folds (``scripts/crossval.py``); LODO_JSON: for a general model, its recipe's leave-one-dataset-out
 table (``scripts/benchmark.py lodo``); TRANSFER_JSON: the cross-dataset matrix
 (``scripts/benchmark.py transfer``); RELEASE_LOG: the release training's output (backbone knobs,
-bias prior, wall time).
+bias prior, wall time). SEARCH_JSON: the ``search.json`` of ``tcn-ahrs search`` whose release MODEL
+is (a classical estimator file ``*.json``, or a learned family's checkpoint trained on every
+training recording).
 """
 import hashlib
 import json
@@ -95,9 +98,62 @@ def general(name, ckpt, lodo_json, tr_json, log=None):
     print("\n".join(out))
 
 
+FORMATS = {"classical": "`tcn-ahrs evaluate ckpt=FILE` runs it (Python); `tcn-ahrs export` says in one line that a "
+                        "classical family is not exported yet (its C kernel is the next step of the deployment issue)",
+           "closed_loop": "`tcn-ahrs export` writes TorchScript, ONNX and torch.export streaming steps; the C runtime "
+                          "holds the residual models only and says so in one line"}
+
+
+def search_card(name, model, search_json, tr_json, log=None):
+    """The card of a model the family search chose: what was chosen, how often, with which knobs,
+    the search's nested table (every outer fold beside the best classical filter), transfer."""
+    from results_tables import _search_summary
+
+    from tcn_ahrs.estimators.families import is_estimator_file, read_estimator
+
+    result = json.loads(Path(search_json).read_text())
+    rel = result["release"]
+    data = Path(model).read_bytes()
+    out = [f"# `{Path(model).name}` — model card\n",
+           f"- **Chosen by** `tcn-ahrs search` on {result['dataset']} ({result['axes']}-axis): **{rel['chosen']}**, the "
+           f"candidate chosen most often over the nested outer folds and seeds ({rel['times_chosen']} of {rel['runs']} "
+           "fold × seed runs; ties to the simpler family), refitted on every training recording."]
+    if is_estimator_file(model):
+        doc = read_estimator(model)
+        cal = doc.get("calibration")
+        out += [f"- **Family**: `{doc['family']}` (a classical filter: nothing learned), knobs `{doc['knobs'] or 'defaults'}`; "
+                f"static calibration: {'none' if cal is None else cal}.",
+                f"- **Fitted on**: {', '.join(doc['provenance'].get('recordings', []))}.",
+                f"- **Runs with**: {FORMATS['classical']}."]
+    else:
+        meta = checkpoint_meta(load_checkpoint(model), model)
+        m = model_from_checkpoint(model)
+        out += [f"- **Family**: `{rel['family']}` (learned: `tcn_ahrs/model/closed_loop.py`), {meta['layout']['axes']}-axis, "
+                f"{m.num_parameters():,} parameters, receptive field {m.receptive_field} samples at "
+                f"{meta['layout'].get('rate_hz') or 0:.1f} Hz; trained on every training recording of `{meta.get('data')}`, "
+                "whole (`train.all_recordings=true`); the fixed schedule's last epoch ships (nothing selected).",
+                f"- **Runs with**: {FORMATS['closed_loop']}."]
+        m_ = re.search(r"training took ([0-9.]+) s", Path(log).read_text(errors="replace")) if log and Path(log).is_file() else None
+        if m_:
+            out.append(f"- **Training time**: {float(m_.group(1)):.0f} s on this 2-core CPU (no GPU).")
+        out += ["", "```bash", f"tcn-ahrs train experiment={name}_cl train.all_recordings=true run_dir=runs/release/{name}_cl",
+                f"python scripts/release_checkpoint.py runs/release/{name}_cl/checkpoints/last.ckpt checkpoints/{name}.ckpt",
+                "```"]
+    out += [f"- **Size / sha256**: {len(data) / 1e6:.3f} MB, `{hashlib.sha256(data).hexdigest()}`", "",
+            "## Nested outer folds over seeds (the search; degrees, the yardstick of docs/conventions.md)", "",
+            _search_summary(result),
+            "## Recordings it never saw (`python scripts/benchmark.py transfer`)", "",
+            "| data (split) | this model | best classical (AAE) | best inclination | never worse? |",
+            "|---|---|---|---|---|"]
+    out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
+    print("\n".join(out))
+
+
 def main(name, ckpt, cv_json, tr_json, log=None):
     if name.startswith("general"):
         return general(name, ckpt, cv_json, tr_json, log)
+    if "release" in json.loads(Path(cv_json).read_text()):
+        return search_card(name, ckpt, cv_json, tr_json, log)
     from tcn_ahrs.conf import CONF_DIR
 
     meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)

@@ -23,6 +23,7 @@ from typing import Any, Dict, List, Mapping, Optional, Sequence
 from .checkpoint import checkpoint_meta, load_checkpoint
 from .config import conf_path
 from .estimators import registry
+from .estimators.families import is_estimator_file, load_estimator, read_estimator
 from .evaluate.runner import evaluate, jsonable
 
 DATASETS = ("broad", "euroc", "tumvi", "oxiod", "simulated")
@@ -65,9 +66,26 @@ def own_datasets(data_name: str) -> List[str]:
     return [data_name]
 
 
+def shipped_meta(path: str) -> Dict[str, Any]:
+    """``axes`` and ``data`` (the dataset it was chosen or trained on) of a shipped model: a learned
+    checkpoint or a classical estimator file written by ``tcn-ahrs search``."""
+    if is_estimator_file(path):
+        doc = read_estimator(path)
+        return {"axes": int(doc["axes"]), "data": str((doc.get("provenance") or {}).get("dataset", ""))}
+    meta = checkpoint_meta(load_checkpoint(path), path)
+    return {"axes": int(meta["layout"]["axes"]), "data": str(meta.get("data", ""))}
+
+
+def shipped_paths(folder: Path = Path("checkpoints")) -> Dict[str, str]:
+    """Every shipped model in ``folder``: ``*.ckpt`` (learned) and ``*.json`` (a classical family
+    chosen by the search), by name."""
+    return {p.stem: str(p) for p in sorted([*folder.glob("*.ckpt"), *folder.glob("*.json")])}
+
+
 def score_cell(ckpt: str, label: str, seqs, axes: int, baselines: Sequence[str]) -> Dict[str, Any]:
-    """One cell: the checkpoint and the baselines on ``seqs`` through the evaluation runner."""
-    ests = [registry.build("learned", ckpt=ckpt, label=label)]
+    """One cell: the shipped model and the baselines on ``seqs`` through the evaluation runner."""
+    ests = [load_estimator(ckpt, name=label) if is_estimator_file(ckpt)
+            else registry.build("learned", ckpt=ckpt, label=label)]
     for b in baselines:
         try:
             m = registry.get(b)
@@ -98,8 +116,8 @@ def transfer(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], baselin
 
     table: Dict[str, Dict[str, Any]] = {}
     for label, path in ckpts.items():
-        meta = checkpoint_meta(load_checkpoint(path), path)
-        axes, own = int(meta["layout"]["axes"]), str(meta.get("data", ""))
+        meta = shipped_meta(path)
+        axes, own = meta["axes"], meta["data"]
         owns = own_datasets(own)
         row: Dict[str, Any] = {"axes": axes, "trained_on": own}
         for name, cfg in data_cfgs.items():
@@ -158,12 +176,12 @@ def markdown(result: Mapping[str, Any]) -> str:
 
 def transfer_main(cfg) -> Dict[str, Any]:
     """``scripts/benchmark.py transfer``: ``transfer.ckpts`` {label: path} (default: every
-    ``checkpoints/*.ckpt``), ``transfer.datasets`` (tcn_ahrs/conf/data names), ``transfer.baselines``."""
+    shipped model, :func:`shipped_paths`), ``transfer.datasets`` (tcn_ahrs/conf/data names), ``transfer.baselines``."""
     from omegaconf import OmegaConf
 
     conf = conf_path("data")
     t = OmegaConf.to_container(cfg.get("transfer") or {}, resolve=True)
-    ckpts = t.get("ckpts") or {p.stem: str(p) for p in sorted(Path("checkpoints").glob("*.ckpt"))}
+    ckpts = t.get("ckpts") or shipped_paths()
     datasets = list(t.get("datasets") or DATASETS)
     data_cfgs: Dict[str, Mapping] = {}
     for d in datasets:

@@ -29,6 +29,9 @@ TOL = 1e-4  # rad: the C runtime (float or double build) against BackboneStreami
 # the shipped checkpoints the C runtime is checked on: broad9/broad6 (both networks off under
 # their knobs: the backbone alone), oxiod9/euroc6 (both networks on), tumvi6 (the trust net only)
 NAMES = ("broad9", "broad6", "oxiod9", "euroc6", "tumvi6")
+# where each lives: the search shipped a closed loop (euroc6) and classical filters (tumvi6, oxiod9)
+# under those names; their residual models stay in checkpoints/residual/
+PATHS = {n: CKPTS / f"{n}.ckpt" if n.startswith("broad") else CKPTS / "residual" / f"{n}.ckpt" for n in NAMES}
 
 
 def _axes(name):
@@ -65,9 +68,9 @@ def built(tmp_path_factory):
     out = tmp_path_factory.mktemp("c_runtime")
     libs = {}
     for name in NAMES:
-        paths = export_c(CKPTS / f"{name}.ckpt", out, name)
+        paths = export_c(PATHS[name], out, name)
         so = compile_c(paths["c"], out / f"lib{name}.so", "double", CC)
-        stream = BackboneStreaming(model_from_checkpoint(CKPTS / f"{name}.ckpt"))
+        stream = BackboneStreaming(model_from_checkpoint(PATHS[name]))
         stream.chunk_networks = 1 << 30  # the networks per sample, as the C runtime
         libs[name] = (CRuntime(so, name, _axes(name)), stream, paths)
     return libs
@@ -252,7 +255,7 @@ def test_networks_that_are_off_are_not_in_the_runtime(built):
     from tcn_ahrs.checkpoint import model_from_checkpoint
     from tcn_ahrs.export.c.runtime import live_networks
 
-    live = {n: live_networks(model_from_checkpoint(CKPTS / f"{n}.ckpt")) for n in ("broad9", "tumvi6", "euroc6")}
+    live = {n: live_networks(model_from_checkpoint(PATHS[n])) for n in ("broad9", "tumvi6", "euroc6")}
     assert live == {"broad9": (), "tumvi6": ("trust",), "euroc6": ("gyro", "trust")}
     size = {n: built[n][0].state_size for n in ("broad9", "tumvi6", "euroc6")}
     assert size["broad9"] < 2048

@@ -148,7 +148,7 @@ def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
 
     return {"ckpt": ckpt, "axes": axes, "rate_hz": rate, "rows": rows, "goals": goals,
             "live_networks": list(live_networks(model)) if getattr(model, "backbone", None) is not None else [],
-            "c_models": models, "footprint": footprint_rows(p.get("footprint_glob") or "checkpoints/*.ckpt")}
+            "c_models": models, "footprint": footprint_rows(p["footprint_glob"])}
 
 
 def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path) -> List[Dict[str, Any]]:
@@ -281,25 +281,33 @@ def _peers(imu, dt, rate, n, warm) -> List[Dict[str, Any]]:
     return rows
 
 
-def footprint_rows(pattern: str) -> List[Dict[str, Any]]:
-    """Parameters, weight bytes, the C runtime's state bytes and FLOPs per sample of each checkpoint."""
+def footprint_rows(patterns: str) -> List[Dict[str, Any]]:
+    """Parameters, weight bytes, the C runtime's state bytes and FLOPs per sample of each checkpoint
+    matching ``patterns`` (comma-separated globs); a checkpoint in a subfolder of ``checkpoints/``
+    is named ``<folder>/<name>``."""
     from ..checkpoint import model_from_checkpoint
     from .common import footprint
 
     out = []
-    paths = sorted(Path().glob(pattern)) or sorted(REPO.glob(pattern))
-    for path in paths:
-        model = model_from_checkpoint(path).eval()
-        row = {"checkpoint": path.stem, "axes": int(model.axes), **footprint(model)}
-        if getattr(model, "backbone", None) is not None:
-            from ..export.c import generate_c
-
-            info = generate_c(model, "m")["info"]
-            row["c_weight_bytes"] = int(info["weight_bytes"] + info["head_bytes_double"])
-            row["c_ring_bytes"] = 4 * int(info["ring_floats"])
-            row["c_flops_per_sample"] = int(info["flops_per_sample"])
-        out.append(row)
+    for pattern in str(patterns).split(","):
+        paths = sorted(Path().glob(pattern.strip())) or sorted(REPO.glob(pattern.strip()))
+        for path in paths:
+            model = model_from_checkpoint(path).eval()
+            label = path.stem if path.parent.name == "checkpoints" else f"{path.parent.name}/{path.stem}"
+            out.append(_footprint_row(model, label, footprint))
     return out
+
+
+def _footprint_row(model, label: str, footprint) -> Dict[str, Any]:
+    row = {"checkpoint": label, "axes": int(model.axes), **footprint(model)}
+    if getattr(model, "backbone", None) is not None:  # a residual model: what its C runtime holds
+        from ..export.c import generate_c
+
+        info = generate_c(model, "m")["info"]
+        row["c_weight_bytes"] = int(info["weight_bytes"] + info["head_bytes_double"])
+        row["c_ring_bytes"] = 4 * int(info["ring_floats"])
+        row["c_flops_per_sample"] = int(info["flops_per_sample"])
+    return row
 
 
 def markdown(res: Dict[str, Any]) -> str:

@@ -57,7 +57,7 @@ class CompareConfig:
 @dataclass
 class TransferSection:
     """benchmark ``transfer:`` (tcn_ahrs.transfer, the cross-dataset matrix)."""
-    ckpts: Optional[Dict[str, str]] = None  # null: every checkpoints/*.ckpt
+    ckpts: Optional[Dict[str, str]] = None  # null: every checkpoints/*.ckpt and *.json
     datasets: Optional[List[str]] = None
     baselines: Optional[List[str]] = None
     rates: Optional[List[float]] = None     # Hz: each checkpoint's cells resampled to these rates

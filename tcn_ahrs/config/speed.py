@@ -86,10 +86,11 @@ class SpeedDeploy:
     c: bool = True                # the C runtime (needs a C compiler)
     onnx: bool = True             # needs the [deploy] extra
     export: bool = True           # torch.export (slow: ~10 ms a step)
-    footprint_glob: str = "checkpoints/*.ckpt"
+    footprint_glob: str = "checkpoints/*.ckpt,checkpoints/residual/*.ckpt"  # comma-separated globs
     # more checkpoints whose C loop is timed in the same run, beside VQF's C++ loop of the same
-    # axes: networks on (oxiod9: ckpt's broad9 runs as the backbone alone, its networks off) and small
-    c_models: List[str] = field(default_factory=lambda: ["checkpoints/oxiod9.ckpt", "checkpoints/euroc6_small.ckpt"])
+    # axes: networks on (residual/oxiod9: ckpt's broad9 runs as the backbone alone, its networks off) and small
+    c_models: List[str] = field(default_factory=lambda: ["checkpoints/residual/oxiod9.ckpt",
+                                                         "checkpoints/euroc6_small.ckpt"])
 
 
 @dataclass

@@ -157,9 +157,9 @@ def is_estimator_file(path) -> bool:
     return str(path).endswith(".json")
 
 
-def load_estimator(path, name: Optional[str] = None) -> Calibrated:
-    """The estimator of a file written by :func:`save_estimator`; ValueError naming the file and
-    the field when it is not one."""
+def read_estimator(path) -> Dict[str, Any]:
+    """The checked contents of a file written by :func:`save_estimator` (family, axes, knobs,
+    calibration, provenance); ValueError naming the file and the field when it is not one."""
     import json
     from pathlib import Path
 
@@ -172,9 +172,20 @@ def load_estimator(path, name: Optional[str] = None) -> Calibrated:
         raise ValueError(f"{p}: not JSON ({e}); expected an estimator file written by tcn-ahrs search") from None
     if not isinstance(doc, dict) or doc.get("format") != ESTIMATOR_FORMAT:
         raise ValueError(f"{p}: field 'format': expected {ESTIMATOR_FORMAT!r}, got {doc.get('format') if isinstance(doc, dict) else doc!r}")
-    fam = doc.get("family")
-    if fam not in FAMILIES:
-        raise ValueError(f"{p}: field 'family': expected one of {list(FAMILIES)}, got {fam!r}")
+    if doc.get("family") not in FAMILIES:
+        raise ValueError(f"{p}: field 'family': expected one of {list(FAMILIES)}, got {doc.get('family')!r}")
+    if doc.get("axes") not in (6, 9):
+        raise ValueError(f"{p}: field 'axes': expected 6 or 9, got {doc.get('axes')!r}")
+    return doc
+
+
+def load_estimator(path, name: Optional[str] = None) -> Calibrated:
+    """The estimator of a file written by :func:`save_estimator` (checked by :func:`read_estimator`)."""
+    from pathlib import Path
+
+    p = Path(path)
+    doc = read_estimator(p)
+    fam = doc["family"]
     cal = None if doc.get("calibration") is None else cal_mod.StaticCalibration.from_dict(doc["calibration"])
     est = FAMILIES[fam].build(int(doc["axes"]), **dict(doc.get("knobs") or {}))
     return Calibrated(est, cal, name=name or f"{fam} ({p.stem})")

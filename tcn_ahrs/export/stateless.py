@@ -331,8 +331,8 @@ class StatefulLoop:
 
 
 # ============================================================== export preparation
-SUPPORTED = ("the residual models (model.loop: backbone): the shipped checkpoints/*.ckpt "
-             "(broad9, broad6, euroc6, tumvi6, oxiod9, general6, general9)")
+SUPPORTED = ("the residual models (model.loop: backbone): checkpoints/broad9, broad6, general6, general9, "
+             "euroc6_small and checkpoints/residual/*.ckpt")
 
 
 def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None, overwrite: bool = False,
