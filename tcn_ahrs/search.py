@@ -53,6 +53,8 @@ def tune_family(family: Family, seqs: Sequence[ImuSequence], axes: int, trials: 
     probe = family.space(optuna.trial.FixedTrial(dict(family.defaults))) if family.defaults else {}
     if not probe:  # nothing to tune (strapdown)
         return {}, mean_scores(Calibrated(family.build(axes), cal), seqs, axes)[0]
+    if isinstance(storage, str) and storage.startswith("sqlite:"):
+        storage = _sqlite_storage(storage)
     study = optuna.create_study(study_name=study_name, storage=storage, load_if_exists=True,
                                 sampler=optuna.samplers.TPESampler(seed=seed), direction="minimize")
     if not study.trials:
@@ -144,6 +146,22 @@ def candidate_names(families: Sequence[str], calibrations: Sequence[str]) -> Lis
                 out.append((f"{f} ({'tuned' if tuned else 'defaults'})" + ("" if c == "none" else f" +cal:{c}"),
                             f, c, tuned))
     return out
+
+
+def _sqlite_storage(url: str, tries: int = 10):
+    """Optuna's storage on an SQLite file that several jobs of one multirun share: each waits for
+    the file's lock instead of failing at once, and a job that lost the race to create the schema
+    opens the one the other created."""
+    import optuna
+    from sqlalchemy.exc import IntegrityError, OperationalError
+
+    for k in range(tries):
+        try:
+            return optuna.storages.RDBStorage(url, engine_kwargs={"connect_args": {"timeout": 300}})
+        except (IntegrityError, OperationalError):
+            if k == tries - 1:
+                raise
+            time.sleep(0.2 * (k + 1))
 
 
 def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequence[ImuSequence],
@@ -301,20 +319,39 @@ def search_main(cfg) -> Dict[str, Any]:
         raise ValueError(f"search.calibrations: unknown {bad}; expected some of {list(CALIBRATIONS)}")
     learned_spec = dict(OmegaConf.to_container(sc.learned, resolve=True) or {}) if sc.get("learned") else {}
     t_start = time.perf_counter()
+    job = multirun_job()
+    recipe = {k: OmegaConf.to_container(sc, resolve=True).get(k) for k in RECIPE_KEYS}
+    recipe["folds"] = folds
     records: List[Dict[str, Any]] = []
     for i in idx:
+        seeds = [int(seed) for seed in sc.seeds]
+        done = {seed: _read_record(out, i, seed, recipe) for seed in seeds}
+        if all(r is not None for r in done.values()):  # every seed of this fold ran (earlier, or another job)
+            print(f"== outer fold {i}: seeds {seeds} read from {out / 'records'}", flush=True)
+            records += [done[seed] for seed in seeds]
+            continue
         fcfg = _fold_cfg(cfg, i, out / f"fold{i}")
         splits, learned_split, inner = _inner_splits(str(sc.inner), folds, i, fcfg, inner_cfg)
         others = [s for s in load_split(fcfg.data, "train") if s.has_gt]
         test = [s for s in load_split(fcfg.data, "val") if s.has_gt]
         print(f"== outer fold {i}: scored on {[s.name for s in test]}; {inner}", flush=True)
         learned = _learned_candidates(learned_spec, i, str(sc.get("learned_checkpoint") or "last"))
-        for seed in sc.seeds:
-            records.append(search_fold(i, splits, others, test, axes, families, calibs, int(sc.trials), int(seed),
-                                       storage, learned, learned_split, float(sc.tie_margin), float(sc.incl_margin),
-                                       tune_seconds=sc.get("tune_seconds"), save_dir=out))
-            (out / "search.json").write_text(json.dumps(_result(cfg, records, time.perf_counter() - t_start),
-                                                        indent=1, default=str))
+        for seed in seeds:
+            rec = done[seed] or search_fold(i, splits, others, test, axes, families, calibs, int(sc.trials), seed,
+                                            storage, learned, learned_split, float(sc.tie_margin),
+                                            float(sc.incl_margin), tune_seconds=sc.get("tune_seconds"), save_dir=out)
+            rec["recipe"] = recipe
+            _write_record(out, rec)
+            records.append(rec)
+            if job is None:
+                (out / "search.json").write_text(json.dumps(_result(cfg, records, time.perf_counter() - t_start),
+                                                            indent=1, default=str))
+    if job is not None:
+        # one job of a multirun (a fold x seed each): the report and the release come from one
+        # plain run over every fold and seed afterwards, which reads these records
+        print(f"multirun job {job}: records written to {out / 'records'}; combine them with the same command "
+              "without -m and without the swept keys (nothing is computed again)")
+        return {"records": records}
     result = _result(cfg, records, time.perf_counter() - t_start)
     result["release"] = release(cfg, result, out, axes, families, int(sc.trials), storage, sc.get("tune_seconds"))
     (out / "search.json").write_text(json.dumps(result, indent=1, default=str))
@@ -326,6 +363,53 @@ def search_main(cfg) -> Dict[str, Any]:
     print(md)
     print(f"results in {out}")
     return result
+
+
+def multirun_job() -> Optional[int]:
+    """This job's number in a Hydra multirun (``tcn-ahrs search -m ...``), None in a plain run."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        hc = HydraConfig.get()
+    except (ImportError, ValueError):  # not started by Hydra (a library call)
+        return None
+    return int(hc.job.num) if hc.mode == RunMode.MULTIRUN else None
+
+
+def _record_path(out: Path, fold: int, seed: int) -> Path:
+    return Path(out) / "records" / f"fold{fold}_seed{seed}.json"
+
+
+RECIPE_KEYS = ("inner", "families", "calibrations", "learned_checkpoint", "learned", "tune_seconds", "trials",
+               "tie_margin", "incl_margin")
+"""The search settings a fold x seed record depends on (with the folds): a record written with
+others is not reused."""
+
+
+def _read_record(out: Path, fold: int, seed: int, recipe: Dict[str, Any]) -> Optional[Dict[str, Any]]:
+    """The record of an earlier run or another multirun job of this search, None if there is none;
+    ValueError when it was written with other settings (nothing is overwritten)."""
+    p = _record_path(out, fold, seed)
+    if not p.is_file():
+        return None
+    rec = json.loads(p.read_text())
+    if rec.get("recipe") != json.loads(json.dumps(recipe, default=float)):
+        changed = sorted(k for k in recipe if (rec.get("recipe") or {}).get(k) != recipe[k])
+        raise ValueError(f"{p}: written by a search with other settings ({', '.join(changed) or 'format'}); "
+                         "choose another search.out (nothing is overwritten)")
+    return rec
+
+
+def _write_record(out: Path, rec: Dict[str, Any]) -> None:
+    """One outer fold x seed's record, atomically (a killed job leaves none, and is run again)."""
+    import os
+
+    p = _record_path(out, rec["fold"], rec["seed"])
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_name(p.name + ".partial")
+    tmp.write_text(json.dumps(rec, indent=1, default=float))
+    os.replace(tmp, p)
 
 
 def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequence[str], trials: int,

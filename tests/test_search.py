@@ -99,6 +99,49 @@ def test_own_device_command_on_generic_recordings(tmp_path, capsys):
     assert got["methods"]["Learned AHRS"]["mean"]["aae_deg"] == pytest.approx(res["rows"][0]["aae_deg"], rel=1e-12)
 
 
+def _generic_root(tmp_path):
+    import h5py
+
+    root = tmp_path / "mine"
+    root.mkdir()
+    for i, prof in enumerate(["walking", "slow_rotation", "fast_rotation"]):
+        s = simulate(prof, 15.0, 100.0, seed=i, device_seed=3)
+        with h5py.File(root / f"rec{i}.h5", "w") as f:
+            for key, val in (("t", s.time), ("gyr", s.gyro), ("acc", s.accel), ("mag", s.mag), ("quat", s.quat)):
+                f[key] = val
+    return root
+
+
+def test_two_job_search_through_the_joblib_launcher(tmp_path):
+    """Folds as Hydra multirun jobs (joblib launcher, 2 processes) write their records; a plain
+    run combines them without computing anything again and equals a one-process search."""
+    import json
+
+    from tcn_ahrs.cli import main
+
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    root = _generic_root(tmp_path)
+    common = ["data=generic", f"data.root={root}", "search.trials=2", "search.seeds=[0]",
+              "search.families=[strapdown,madgwick]", "search.calibrations=[none]"]
+    out = tmp_path / "parallel"
+    main(["search", "-m", *common, f"search.out={out}", "search.folds=[0],[1]", "hydra/launcher=joblib",
+          "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path / 'sweep'}"])
+    assert sorted(p.name for p in (out / "records").iterdir()) == ["fold0_seed0.json", "fold1_seed0.json"]
+    assert not (out / "search.json").exists()  # jobs write records only: the plain run reports
+    seen = {json.loads((out / "records" / f"fold{i}_seed0.json").read_text())["seconds"] for i in (0, 1)}
+    main(["search", *common, f"search.out={out}", "search.folds=[0,1]", f"hydra.run.dir={tmp_path / 'h1'}"])
+    res = json.loads((out / "search.json").read_text())
+    assert {r["seconds"] for r in res["folds"]} == seen  # read, not run again
+    ref = tmp_path / "serial"
+    main(["search", *common, f"search.out={ref}", "search.folds=[0,1]", f"hydra.run.dir={tmp_path / 'h2'}"])
+    serial = json.loads((ref / "search.json").read_text())
+    assert [(r["chosen"], r["aae_deg"]) for r in res["rows"]] == [(r["chosen"], r["aae_deg"]) for r in serial["rows"]]
+    # a record written with other settings is refused, not silently reused or overwritten
+    with pytest.raises(SystemExit):
+        main(["search", *common[:-1], "search.calibrations=[none,gyro_bias]", f"search.out={out}",
+              "search.folds=[0,1]", f"hydra.run.dir={tmp_path / 'h3'}"])
+
+
 def test_released_estimator_file_runs_in_evaluate_and_export_refuses_it(tmp_path, recs):
     import json
 
