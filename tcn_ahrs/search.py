@@ -318,6 +318,8 @@ def search_main(cfg) -> Dict[str, Any]:
     if bad:
         raise ValueError(f"search.calibrations: unknown {bad}; expected some of {list(CALIBRATIONS)}")
     learned_spec = dict(OmegaConf.to_container(sc.learned, resolve=True) or {}) if sc.get("learned") else {}
+    lighter = skipped(OmegaConf.to_container(sc, resolve=True), len(folds))
+    print("search settings: " + ("; ".join(lighter) if lighter else "the full search (nothing skipped)"), flush=True)
     t_start = time.perf_counter()
     job = multirun_job()
     recipe = {k: OmegaConf.to_container(sc, resolve=True).get(k) for k in RECIPE_KEYS}
@@ -353,16 +355,41 @@ def search_main(cfg) -> Dict[str, Any]:
               "without -m and without the swept keys (nothing is computed again)")
         return {"records": records}
     result = _result(cfg, records, time.perf_counter() - t_start)
+    result["skipped"] = lighter
     result["release"] = release(cfg, result, out, axes, families, int(sc.trials), storage, sc.get("tune_seconds"))
     (out / "search.json").write_text(json.dumps(result, indent=1, default=str))
     # the per-fold rows alone (what docs/results.md's generated tables read; search.json has every candidate)
     (out / "summary.json").write_text(json.dumps({k: result[k] for k in ("dataset", "axes", "seconds", "rows", "release",
-                                                                        "config")}, indent=1, default=str))
+                                                                        "config", "skipped")}, indent=1, default=str))
     md = search_markdown(result)
     (out / "search.md").write_text(md)
     print(md)
     print(f"results in {out}")
     return result
+
+
+def skipped(sc: Dict[str, Any], n_folds: int) -> List[str]:
+    """What a lighter search leaves out against the full one (:class:`~tcn_ahrs.config.SearchSection`'s
+    defaults), in words: printed at the start and written in the report."""
+    from .config import SearchSection
+
+    full = SearchSection()
+    out = []
+    if int(sc["trials"]) < full.trials:
+        out.append(f"{sc['trials']} Optuna trials per candidate (full: {full.trials})")
+    if len(sc["seeds"]) < len(full.seeds):
+        out.append(f"{len(sc['seeds'])} seed(s) (full: {len(full.seeds)}: no spread over seeds)")
+    if sc.get("tune_seconds"):
+        out.append(f"knobs tuned on {sc['tune_seconds']:g} s clips of each recording (full: whole recordings)")
+    for key in ("families", "calibrations"):
+        left = [x for x in getattr(full, key) if x not in sc[key]]
+        if left:
+            out.append(f"{key} left out: {', '.join(left)}")
+    if sc.get("folds") is not None and len(sc["folds"]) < n_folds:
+        out.append(f"outer folds {list(sc['folds'])} of {n_folds}")
+    if not sc.get("learned"):
+        out.append("no learned family (search.learned: crossval folders of the learned recipes)")
+    return out
 
 
 def multirun_job() -> Optional[int]:
@@ -479,6 +506,8 @@ def summary_markdown(result: Dict[str, Any]) -> str:
                   f"(best classical with defaults {np.mean([r['best_classical_aae_deg'] for r in rows]):.2f}); never worse in "
                   f"{sum(r['never_worse'] for r in rows)} of {len(rows)} fold × seed runs; search time "
                   f"{result['seconds'] / 60:.1f} min on this machine."]
+    if result.get("skipped"):
+        lines.append(f"Lighter than the full search: {'; '.join(result['skipped'])}.")
     return "\n".join(lines) + "\n"
 
 

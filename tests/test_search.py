@@ -85,7 +85,11 @@ def test_own_device_command_on_generic_recordings(tmp_path, capsys):
           f"hydra.run.dir={tmp_path / 'hydra'}"])
     res = json.loads((out / "search.json").read_text())
     assert [r["fold"] for r in res["rows"]] == [0, 1, 2]
-    assert "dealt into 3 folds" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "dealt into 3 folds" in printed
+    # a lighter search says what it left out, on screen and in the report
+    assert "2 Optuna trials per candidate (full: 40)" in printed and "calibrations left out: full" in printed
+    assert "Lighter than the full search" in (out / "search.md").read_text()
     for rec, row in zip(res["folds"], res["rows"]):
         assert row["aae_deg"] == rec["test"][rec["chosen"]]["aae_deg"]
     assert (out / "search.md").read_text().startswith("# Family search: generic")
