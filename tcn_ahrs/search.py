@@ -90,6 +90,40 @@ def choose(candidates: Dict[str, Tuple[float, float]], tie_margin: float, incl_m
     return min(ties, key=lambda k: (simplicity_rank(k), ok[k][0]))
 
 
+def choose_candidate(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_margin: float,
+                     incl_margin: float) -> str:
+    """The choice among one fold's candidate records (``inner_val``: a row of (AAE, inclination)
+    per inner split; a learned candidate has one row, its ``learned_split``): the classical ones by
+    :func:`choose` on their mean over the splits (inclination bar: the best untuned filter's), then
+    a learned one replaces that choice if it is better by more than ``tie_margin`` on the split it
+    was validated on, at an inclination within ``incl_margin``."""
+    classical = {k: v for k, v in cands.items() if v["calibration"] != "learned"}
+    mean = {k: np.mean(np.asarray(v["inner_val"], dtype=float), axis=0) for k, v in classical.items()}
+    bar_incl = min(float(mean[k][1]) for k, v in classical.items() if not v["tuned"])
+    chosen = choose({k: (float(m[0]), float(m[1])) for k, m in mean.items()}, tie_margin, incl_margin, bar_incl)
+    for name, v in cands.items():
+        if v["calibration"] != "learned":
+            continue
+        # the current choice on the learned split (a learned one has that split's row only)
+        ref = cands[chosen]["inner_val"][0 if cands[chosen]["calibration"] == "learned" else learned_split]
+        got = v["inner_val"][0]
+        if got[0] < ref[0] * (1.0 - tie_margin) and got[1] <= ref[1] + incl_margin:
+            chosen = name
+    return chosen
+
+
+def fold_choice(records: Sequence[Dict[str, Any]], tie_margin: float, incl_margin: float) -> str:
+    """One outer fold's choice from all its seeds: every candidate's inner-validation scores
+    averaged over the seeds (only the tuned knobs differ by seed), then :func:`choose_candidate`.
+    A choice that flipped with the sampler's seed (EuRoC fold 0: closed loop on one seed, the
+    calibrated backbone on two) cannot flip: the fold has one choice, scored for every seed."""
+    first = records[0]
+    pooled = {name: dict(c, inner_val=np.mean([np.asarray(r["candidates"][name]["inner_val"], dtype=float)
+                                                for r in records], axis=0).tolist())
+              for name, c in first["candidates"].items()}
+    return choose_candidate(pooled, int(first.get("learned_split", 0)), tie_margin, incl_margin)
+
+
 # ------------------------------------------------------------------------------ the nested search
 
 def _learned_candidates(spec: Dict[str, str], fold: int, which: str = "last") -> Dict[str, Any]:
@@ -168,7 +202,7 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                 test: Sequence[ImuSequence], axes: int, families: Sequence[str], calibrations: Sequence[str],
                 trials: int, seed: int, storage: Optional[str], learned: Dict[str, Any], learned_split: int,
                 tie_margin: float, incl_margin: float, log: Callable[[str], None] = print,
-                tune_seconds: Optional[float] = None, save_dir: Optional[Path] = None) -> Dict[str, Any]:
+                tune_seconds: Optional[float] = None) -> Dict[str, Any]:
     """Steps 2-4 of the module docstring for one outer fold and one seed.
 
     ``splits``: the inner (training, validation) pairs (every other fold as validation in turn,
@@ -176,8 +210,8 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
     validation set, the choice reads the mean over the splits. A learned candidate (trained by
     crossval on split ``learned_split``) is compared on that split alone. The chosen classical
     candidate is fitted again on ``others`` (every recording but the outer fold's) and scored on
-    ``test`` beside every other candidate fitted the same way; a classical choice is written to
-    ``save_dir/fold<i>_seed<s>.json`` (what ``tcn-ahrs evaluate ckpt=`` reads). Returns the fold's record."""
+    ``test`` beside every other candidate fitted the same way (the fold's choice over all seeds,
+    :func:`fold_choice`, reads these columns). Returns the fold's record for this seed."""
     from .evaluate import evaluate
 
     t0 = time.perf_counter()
@@ -193,20 +227,12 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                        "inner_val_aae": float(a[:, 0].mean()), "inner_val_inclination": float(a[:, 1].mean())}
         log(f"   fold {outer} seed {seed}: {name:<32s} inner val {a[:, 0].mean():8.3f} / {a[:, 1].mean():6.3f} "
             f"(per split {np.round(a[:, 0], 2).tolist()})")
-    bar = [n for n, v in cands.items() if not v["tuned"]]
-    bar_incl = min(cands[n]["inner_val_inclination"] for n in bar)
-    chosen = choose({k: (v["inner_val_aae"], v["inner_val_inclination"]) for k, v in cands.items()},
-                    tie_margin, incl_margin, bar_incl)
     for fam, est in learned.items():  # compared on the one split it was validated on
         v = mean_scores(est, splits[learned_split][1], axes)
-        ref = cands[chosen]["inner_val"][learned_split]
         cands[fam] = {"family": fam, "calibration": "learned", "tuned": True, "inner_val": [list(v)],
-                      "inner_val_aae": v[0], "inner_val_inclination": v[1], "checkpoint": getattr(est, "ckpt_path", None),
-                      "classical_on_its_split": ref}
-        log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (the choice so far there: "
-            f"{ref[0]:.3f} / {ref[1]:.3f})")
-        if v[0] < ref[0] * (1.0 - tie_margin) and v[1] <= ref[1] + incl_margin:
-            chosen = fam
+                      "inner_val_aae": v[0], "inner_val_inclination": v[1], "checkpoint": getattr(est, "ckpt_path", None)}
+        log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (on inner split {learned_split})")
+    chosen = choose_candidate(cands, learned_split, tie_margin, incl_margin)
     log(f"   fold {outer} seed {seed}: chose {chosen}")
     # every classical candidate fitted again on all the outer training recordings, the learned
     # ones as trained; the outer fold only scores (one runner, one yardstick)
@@ -216,17 +242,12 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                                     f"fold{outer}_all_seed{seed}_{fam}_{c}", tune_seconds)
         cands[name]["knobs"] = knobs
         fitted[name] = Calibrated(est, None, name=name)
-        if name == chosen and save_dir is not None:
-            from .estimators.families import save_estimator
-            save_estimator(Path(save_dir) / f"fold{outer}_seed{seed}.json", fam, axes, knobs, est.cal,
-                           {"outer_fold": outer, "seed": seed, "chosen": name, "fitted_on": [s.name for s in others]})
     fitted.update({k: Calibrated(v, None, name=k) for k, v in learned.items()})
-    chosen_est = Calibrated(fitted[chosen], None, name=f"chosen: {chosen}")
-    res = evaluate([chosen_est, *fitted.values()], test, axes=axes, plots=False, trajectories=False)
+    res = evaluate(list(fitted.values()), test, axes=axes, plots=False, trajectories=False)
     means = {m: {k: v["mean"].get(k) for k in ("aae_deg", "inclination_deg", "n_recordings")}
              for m, v in res["methods"].items()}
     return {"fold": outer, "seed": seed, "recordings": [s.name for s in test], "candidates": cands,
-            "bar": bar, "chosen": chosen, "test": means, "seconds": time.perf_counter() - t0}
+            "bar": [n for n, v in cands.items() if not v["tuned"]], "chosen": chosen, "learned_split": learned_split, "test": means, "seconds": time.perf_counter() - t0}
 
 
 def best_classical(record: Dict[str, Any]) -> Tuple[str, float, float]:
@@ -325,36 +346,51 @@ def search_main(cfg) -> Dict[str, Any]:
     recipe = {k: OmegaConf.to_container(sc, resolve=True).get(k) for k in RECIPE_KEYS}
     recipe["folds"] = folds
     records: List[Dict[str, Any]] = []
+    read_seconds = 0.0  # the compute time of records an earlier run or another job wrote
     for i in idx:
         seeds = [int(seed) for seed in sc.seeds]
         done = {seed: _read_record(out, i, seed, recipe) for seed in seeds}
+        fold_data: Dict[str, Any] = {}
+
+        def data(i=i, fold_data=fold_data):  # the fold's recordings, loaded once and only if needed
+            if not fold_data:
+                fcfg = _fold_cfg(cfg, i, out / f"fold{i}")
+                splits, learned_split, inner = _inner_splits(str(sc.inner), folds, i, fcfg, inner_cfg)
+                fold_data.update(splits=splits, learned_split=learned_split,
+                                 others=[s for s in load_split(fcfg.data, "train") if s.has_gt],
+                                 test=[s for s in load_split(fcfg.data, "val") if s.has_gt])
+                print(f"== outer fold {i}: scored on {[s.name for s in fold_data['test']]}; {inner}", flush=True)
+            return fold_data
+
+        read_seconds += sum(float(r["seconds"]) for r in done.values() if r is not None)
         if all(r is not None for r in done.values()):  # every seed of this fold ran (earlier, or another job)
             print(f"== outer fold {i}: seeds {seeds} read from {out / 'records'}", flush=True)
-            records += [done[seed] for seed in seeds]
-            continue
-        fcfg = _fold_cfg(cfg, i, out / f"fold{i}")
-        splits, learned_split, inner = _inner_splits(str(sc.inner), folds, i, fcfg, inner_cfg)
-        others = [s for s in load_split(fcfg.data, "train") if s.has_gt]
-        test = [s for s in load_split(fcfg.data, "val") if s.has_gt]
-        print(f"== outer fold {i}: scored on {[s.name for s in test]}; {inner}", flush=True)
-        learned = _learned_candidates(learned_spec, i, str(sc.get("learned_checkpoint") or "last"))
+        learned = None
         for seed in seeds:
-            rec = done[seed] or search_fold(i, splits, others, test, axes, families, calibs, int(sc.trials), seed,
-                                            storage, learned, learned_split, float(sc.tie_margin),
-                                            float(sc.incl_margin), tune_seconds=sc.get("tune_seconds"), save_dir=out)
-            rec["recipe"] = recipe
-            _write_record(out, rec)
-            records.append(rec)
+            if done[seed] is None:
+                d = data()
+                if learned is None:
+                    learned = _learned_candidates(learned_spec, i, str(sc.get("learned_checkpoint") or "last"))
+                rec = search_fold(i, d["splits"], d["others"], d["test"], axes, families, calibs, int(sc.trials), seed,
+                                  storage, learned, d["learned_split"], float(sc.tie_margin), float(sc.incl_margin),
+                                  tune_seconds=sc.get("tune_seconds"))
+                rec["recipe"] = recipe
+                _write_record(out, rec)
+                done[seed] = rec
+            records.append(done[seed])
             if job is None:
-                (out / "search.json").write_text(json.dumps(_result(cfg, records, time.perf_counter() - t_start),
-                                                            indent=1, default=str))
+                partial = _result(cfg, records, read_seconds + time.perf_counter() - t_start)
+                (out / "search.json").write_text(json.dumps(partial, indent=1, default=str))
+        if job is None:
+            _save_fold_choice(out, i, [done[seed] for seed in seeds], data, axes, int(sc.trials), storage,
+                              float(sc.tie_margin), float(sc.incl_margin), sc.get("tune_seconds"))
     if job is not None:
         # one job of a multirun (a fold x seed each): the report and the release come from one
         # plain run over every fold and seed afterwards, which reads these records
         print(f"multirun job {job}: records written to {out / 'records'}; combine them with the same command "
               "without -m and without the swept keys (nothing is computed again)")
         return {"records": records}
-    result = _result(cfg, records, time.perf_counter() - t_start)
+    result = _result(cfg, records, read_seconds + time.perf_counter() - t_start)
     result["skipped"] = lighter
     result["release"] = release(cfg, result, out, axes, families, int(sc.trials), storage, sc.get("tune_seconds"))
     (out / "search.json").write_text(json.dumps(result, indent=1, default=str))
@@ -390,6 +426,30 @@ def skipped(sc: Dict[str, Any], n_folds: int) -> List[str]:
     if not sc.get("learned"):
         out.append("no learned family (search.learned: crossval folders of the learned recipes)")
     return out
+
+
+def _save_fold_choice(out: Path, fold: int, records: Sequence[Dict[str, Any]], data: Callable[[], Dict[str, Any]],
+                      axes: int, trials: int, storage: Optional[str], tie_margin: float, incl_margin: float,
+                      tune_seconds: Optional[float]) -> None:
+    """The fold's choice (:func:`fold_choice`), when classical, as ``fold<i>_seed<s>.json`` per seed
+    (what ``tcn-ahrs evaluate ckpt=`` reads): refitted on the outer training recordings from the
+    seed's finished study (no trial runs again), so the file is the column the report scored."""
+    from .estimators.families import save_estimator
+
+    name = fold_choice(records, tie_margin, incl_margin)
+    c = records[0]["candidates"][name]
+    if c["calibration"] == "learned":
+        return
+    for r in records:
+        path = Path(out) / f"fold{fold}_seed{r['seed']}.json"
+        if path.is_file() and json.loads(path.read_text()).get("provenance", {}).get("chosen") == name:
+            continue
+        others = data()["others"]
+        est, knobs = _fit_candidate(c["family"], c["calibration"], c["tuned"], others, axes, trials, int(r["seed"]),
+                                    storage, f"fold{fold}_all_seed{r['seed']}_{c['family']}_{c['calibration']}",
+                                    tune_seconds)
+        save_estimator(path, c["family"], axes, knobs, est.cal,
+                       {"outer_fold": fold, "seed": r["seed"], "chosen": name, "fitted_on": [s.name for s in others]})
 
 
 def multirun_job() -> Optional[int]:
@@ -439,20 +499,48 @@ def _write_record(out: Path, rec: Dict[str, Any]) -> None:
     os.replace(tmp, p)
 
 
-def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequence[str], trials: int,
-            storage: Optional[str], tune_seconds: Optional[float]) -> Dict[str, Any]:
-    """The estimator to ship: the candidate chosen most often over the outer folds and seeds (a
-    tie goes to the simpler family); a classical one is fitted on every training recording,
-    whole, and written as ``estimator.json`` (``tcn-ahrs evaluate ckpt=.../estimator.json``); a
-    learned one is its recipe trained on every recording (the command is printed)."""
+def release_choice(result: Dict[str, Any], tie_margin: float) -> Tuple[str, Dict[str, int]]:
+    """The candidate chosen on the most outer folds; a tie is broken on the inner validation — the
+    tied candidates' scores averaged over the folds and seeds (on the learned candidates' inner
+    split when one of them is learned, so all are read on the same recordings) — and within
+    ``tie_margin`` of the best of those, the simpler family. Returns (name, times chosen by name,
+    counted over fold x seed runs)."""
     from collections import Counter
 
+    counts = Counter(r["chosen"] for r in result["rows"])
+    top = max(counts.values())
+    tied = sorted(k for k, v in counts.items() if v == top)
+    if len(tied) == 1:
+        return tied[0], dict(counts)
+    recs = result["folds"]
+    learned_tied = any(recs[0]["candidates"][k]["calibration"] == "learned" for k in tied)
+
+    def score(name: str) -> float:
+        vals = []
+        for r in recs:
+            c = r["candidates"][name]
+            rows = np.asarray(c["inner_val"], dtype=float)
+            if learned_tied and c["calibration"] != "learned":
+                rows = rows[int(r.get("learned_split", 0))][None]
+            vals.append(float(rows[:, 0].mean()))
+        return float(np.mean(vals))
+
+    scores = {k: score(k) for k in tied}
+    best = min(scores.values())
+    near = [k for k in tied if scores[k] <= best * (1.0 + tie_margin)]
+    return min(near, key=lambda k: (simplicity_rank(k), scores[k])), dict(counts)
+
+
+def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequence[str], trials: int,
+            storage: Optional[str], tune_seconds: Optional[float]) -> Dict[str, Any]:
+    """The estimator to ship (:func:`release_choice`); a classical one is fitted on every training
+    recording, whole, and written as ``estimator.json`` (``tcn-ahrs evaluate ckpt=.../estimator.json``);
+    a learned one is its recipe trained on every recording (the command is printed)."""
     from .datasets import load_split
     from .estimators.families import save_estimator
 
-    counts = Counter(r["chosen"] for r in result["rows"])
-    name = min(counts, key=lambda k: (-counts[k], simplicity_rank(k)))
-    rec = next(r for r in result["folds"] if r["chosen"] == name)["candidates"][name]
+    name, counts = release_choice(result, float(cfg.search.tie_margin))
+    rec = result["folds"][0]["candidates"][name]
     info = {"chosen": name, "times_chosen": counts[name], "runs": len(result["rows"]), "family": rec["family"]}
     if rec["calibration"] == "learned":
         info["how"] = (f"a learned family: train its recipe on every training recording "
@@ -475,11 +563,17 @@ def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequenc
 def _result(cfg, records: List[Dict[str, Any]], seconds: float) -> Dict[str, Any]:
     from omegaconf import OmegaConf
 
+    sc = cfg.search
+    by_fold: Dict[int, List[Dict[str, Any]]] = {}
+    for r in records:
+        by_fold.setdefault(int(r["fold"]), []).append(r)
+    chosen = {f: fold_choice(rs, float(sc.tie_margin), float(sc.incl_margin)) for f, rs in by_fold.items()}
     rows = []
     for r in records:
         name, bar, incl_bar = best_classical(r)
-        got = r["test"][f"chosen: {r['chosen']}"]
-        rows.append({"fold": r["fold"], "seed": r["seed"], "chosen": r["chosen"], "aae_deg": got["aae_deg"],
+        got = r["test"][chosen[int(r["fold"])]]
+        rows.append({"fold": r["fold"], "seed": r["seed"], "chosen": chosen[int(r["fold"])],
+                     "chosen_by_seed_alone": r["chosen"], "aae_deg": got["aae_deg"],
                      "inclination_deg": got["inclination_deg"], "best_classical": name, "best_classical_aae_deg": bar,
                      "best_inclination_deg": incl_bar,
                      "never_worse": bool(got["aae_deg"] <= bar + 1e-9 and got["inclination_deg"] <= incl_bar + 0.05)})
@@ -488,16 +582,19 @@ def _result(cfg, records: List[Dict[str, Any]], seconds: float) -> Dict[str, Any
 
 
 def summary_markdown(result: Dict[str, Any]) -> str:
-    """Per outer fold: the choice of each seed, its outer AAE / inclination beside the bar (every
+    """Per outer fold: its one choice over the seeds (:func:`fold_choice`; what each seed alone would
+    have chosen where that differs), its outer AAE / inclination beside the bar (every
     family with its defaults, raw and calibrated) — mean ± std over seeds — and never worse."""
-    lines = ["| outer fold | chosen (per seed) | AAE | inclination | best classical, defaults (AAE) | best inclination | never worse |",
+    lines = ["| outer fold | chosen (over the seeds) | AAE | inclination | best classical, defaults (AAE) | best inclination | never worse |",
              "|---|---|---|---|---|---|---|"]
     by_fold: Dict[int, List[dict]] = {}
     for r in result["rows"]:
         by_fold.setdefault(r["fold"], []).append(r)
     fmt = lambda xs: f"{np.mean(xs):.2f} ± {np.std(xs):.2f}" if len(xs) > 1 else f"{xs[0]:.2f}"  # noqa: E731
     for f, rows in sorted(by_fold.items()):
-        lines.append(f"| {f} | {', '.join(r['chosen'] for r in rows)} | {fmt([r['aae_deg'] for r in rows])} | "
+        alone = [r.get("chosen_by_seed_alone", r["chosen"]) for r in rows]
+        flips = f" (seeds alone: {', '.join(alone)})" if any(a != rows[0]["chosen"] for a in alone) else ""
+        lines.append(f"| {f} | {rows[0]['chosen']}{flips} | {fmt([r['aae_deg'] for r in rows])} | "
                      f"{fmt([r['inclination_deg'] for r in rows])} | {rows[0]['best_classical']} "
                      f"{fmt([r['best_classical_aae_deg'] for r in rows])} | {fmt([r['best_inclination_deg'] for r in rows])} | "
                      f"{sum(r['never_worse'] for r in rows)} of {len(rows)} |")
@@ -519,7 +616,7 @@ def search_markdown(result: Dict[str, Any]) -> str:
              "validation recordings, scored on the outer fold (which chose nothing). Degrees, the "
              "yardstick of docs/conventions.md; mean ± std over seeds.\n", summary_markdown(result)]
     for rec in result["folds"]:
-        lines += [f"\n## Outer fold {rec['fold']}, seed {rec['seed']}: chose {rec['chosen']}\n",
+        lines += [f"\n## Outer fold {rec['fold']}, seed {rec['seed']} (this seed alone would choose {rec['chosen']})\n",
                   "| candidate | inner val AAE | inner val incl. | outer AAE | outer incl. | knobs |", "|---|---|---|---|---|---|"]
         for name, c in rec["candidates"].items():
             t = rec["test"].get(name, {})
