@@ -69,28 +69,65 @@ def refuse_earlier_output(out, overwrite: bool = False, what: str = "output") ->
     return out
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: alive
+        return True
+    return True
+
+
+def _remove_dead_stages(out: Path) -> None:
+    """Staging folders of ``out`` whose run was killed (its process is gone); live ones are
+    another run's, left alone."""
+    for stage in out.parent.glob(f".{out.name}.*.partial"):
+        pid = stage.name[len(out.name) + 2:].split(".")[0]
+        if not pid.isdigit() or not _alive(int(pid)):
+            shutil.rmtree(stage, ignore_errors=True)
+    legacy = out.parent / f".{out.name}.partial"  # the single staging folder of earlier versions
+    if legacy.is_dir():
+        shutil.rmtree(legacy, ignore_errors=True)
+
+
+def _free_sibling(out: Path) -> Path:
+    k = 2
+    while (out.parent / f"{out.name}-{k}").exists():
+        k += 1
+    return out.parent / f"{out.name}-{k}"
+
+
 @contextmanager
 def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterator[Path]:
     """A run's output folder, written as a whole or not at all: the body writes into a hidden
-    sibling ``.<name>.partial`` (a killed run leaves only that, removed by the next run), which
-    replaces ``out`` when the body returns. An ``out`` that already holds an earlier run's files
-    is refused unless ``overwrite`` (then they are replaced, none kept beside the new ones).
-    Hydra's files of the current job (``.hydra/``, its log) move into the new folder."""
+    sibling ``.<name>.<pid>.<random>.partial`` of its own (concurrent runs with one ``out`` never
+    share it; a killed run's is removed by the next run), which replaces ``out`` when the body
+    returns. An ``out`` that already holds an earlier run's files is refused unless ``overwrite``
+    (then they are replaced, none kept beside the new ones). If another run filled ``out`` while
+    this one ran, this run's folder is kept beside it as ``<out>-2`` (a warning names it): nothing
+    either produced is lost. Hydra's files of the current job (``.hydra/``, its log) move into the
+    new folder."""
+    import uuid
+    import warnings
+
     out = refuse_earlier_output(out, overwrite, what)
     out.parent.mkdir(parents=True, exist_ok=True)
-    stage = out.parent / f".{out.name}.partial"
-    if stage.exists():
-        shutil.rmtree(stage)  # a killed earlier run's leftovers
+    _remove_dead_stages(out)
+    stage = out.parent / f".{out.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.partial"
     stage.mkdir()
     try:
         yield stage
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
+    if out.is_dir() and not overwrite and _earlier_entries(out):
+        target = _free_sibling(out)
+        stage.rename(target)
+        warnings.warn(f"{what}: another run wrote {out} while this one ran; this run's files are in {target}")
+        return
     if out.is_dir():
-        old = out.parent / f".{out.name}.old"
-        if old.exists():
-            shutil.rmtree(old)
+        old = out.parent / f".{out.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.old"
         out.rename(old)
         stage.rename(out)
         for p in old.iterdir():

@@ -104,17 +104,21 @@ def checkpoint_meta(ckpt: Mapping, path="checkpoint") -> Dict[str, Any]:
     return meta
 
 
-def check_layout(ckpt: Mapping, axes: int, path="checkpoint") -> None:
-    """Raise :class:`CheckpointError` unless the checkpoint was trained for ``axes``-axis input."""
+def check_layout(ckpt: Mapping, axes: int, path="checkpoint", data_axes: Optional[int] = None) -> None:
+    """Raise :class:`CheckpointError` unless the checkpoint was trained for ``axes``-axis input.
+    ``data_axes``: the most the dataset can provide (6: it has no magnetometer), so the advice
+    names only what can work."""
     meta = checkpoint_meta(ckpt, path)
     got = int(meta["layout"]["axes"])
     if got != int(axes):
         variant = meta["model"].get("variant", "?")
-        raise CheckpointError(
-            f"{path}: checkpoint of model variant '{variant}' expects {got}-axis input "
-            f"({', '.join(meta['layout']['channels'])}) but the data provides {axes} axes; "
-            f"use a {axes}-axis checkpoint, or evaluate this one with data.axes={got}"
-            + (" (drops the magnetometer)" if got == 6 else ""))
+        head = (f"{path}: checkpoint of model variant '{variant}' expects {got}-axis input "
+                f"({', '.join(meta['layout']['channels'])}) but the data provides {axes} axes; ")
+        if got > int(axes) and data_axes is not None and int(data_axes) < got:
+            raise CheckpointError(head + "this dataset has no magnetometer: use a 6-axis checkpoint "
+                                  "(e.g. checkpoints/general6.ckpt)")
+        raise CheckpointError(head + f"use a {axes}-axis checkpoint, or evaluate this one with data.axes={got}"
+                              + (" (drops the magnetometer)" if got == 6 else ""))
 
 
 def model_from_checkpoint(path, axes: Optional[int] = None, map_location="cpu") -> LearnedAHRS:

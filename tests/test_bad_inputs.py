@@ -459,18 +459,40 @@ def test_staged_output_is_all_or_nothing_and_never_mixes_runs(tmp_path):
         with staged_output(out, overwrite=True) as stage:
             (stage / "results.json").write_text("half")
             raise RuntimeError("killed")
-    assert (out / "results.json").read_text() == "1" and not (tmp_path / ".eval.partial").exists()
+    assert (out / "results.json").read_text() == "1" and not list(tmp_path.glob(".eval.*partial"))
     (out / ".hydra").mkdir()
-    (tmp_path / ".eval.partial").mkdir()  # what a SIGKILL leaves: removed by the next run
+    (tmp_path / ".eval.999999999.dead.partial").mkdir()  # what a SIGKILL leaves: removed by the next run
     with staged_output(out, overwrite=True) as stage:
         (stage / "results.json").write_text("2")
     assert sorted(p.name for p in out.iterdir()) == [".hydra", "results.json"]  # no earlier recording beside it
+    assert not list(tmp_path.glob(".eval.*partial"))
     hydra_dir = tmp_path / "hydra_run"
     (hydra_dir / ".hydra").mkdir(parents=True)
     (hydra_dir / "evaluate.log").write_text("log")
     with staged_output(hydra_dir) as stage:  # Hydra's own files of this job are not an earlier run
         (stage / "results.json").write_text("3")
     assert sorted(p.name for p in hydra_dir.iterdir()) == [".hydra", "evaluate.log", "results.json"]
+
+
+def test_concurrent_runs_with_one_out_never_share_a_staging_folder(tmp_path):
+    """Two evaluates with one out= (measured: one died with "[Errno 2] ... .partial/plots/...png"):
+    each stages alone; the first to finish fills out, the other is kept beside it with a warning."""
+    from tcn_ahrs.app import staged_output
+
+    out = tmp_path / "eval"
+    first, second = staged_output(out), staged_output(out)
+    a, b = first.__enter__(), second.__enter__()
+    assert a != b and a.is_dir() and b.is_dir()
+    (a / "plots").mkdir()
+    (b / "plots").mkdir()
+    (a / "plots" / "x.png").write_text("a")
+    (b / "plots" / "x.png").write_text("b")
+    first.__exit__(None, None, None)
+    with pytest.warns(UserWarning, match="eval-2"):
+        second.__exit__(None, None, None)
+    assert (out / "plots" / "x.png").read_text() == "a"
+    assert (tmp_path / "eval-2" / "plots" / "x.png").read_text() == "b"
+    assert not list(tmp_path.glob(".eval.*"))
 
 
 def test_export_writes_both_files_or_neither_and_refuses_to_overwrite(tmp_path, monkeypatch):
@@ -712,3 +734,18 @@ def test_an_export_that_cannot_be_written_is_a_clean_error(tmp_path, monkeypatch
     with pytest.raises(ex.ExportError, match=r"export: cannot write .* Permission denied"):
         ex.export_checkpoint(CKPTS / "closed_loop" / "broad6.ckpt", tmp_path / "m.pt")
     assert not list(tmp_path.iterdir())  # nothing half-written left behind
+
+
+def test_a_9_axis_checkpoint_on_data_without_magnetometer_gets_advice_that_can_work():
+    """broad9 on EuRoC advised `data.axes=9`, which cannot load (EuRoC has no magnetometer)."""
+    from tcn_ahrs.checkpoint import CheckpointError, check_layout, load_checkpoint
+    from tcn_ahrs.evaluate.main import dataset_axes
+
+    ck = load_checkpoint(CKPTS / "broad9.ckpt")
+    assert dataset_axes("euroc") == 6 and dataset_axes("tumvi") == 6 and dataset_axes("broad") == 9
+    with pytest.raises(CheckpointError, match="no magnetometer: use a 6-axis checkpoint") as e:
+        check_layout(ck, 6, "broad9.ckpt", data_axes=dataset_axes("euroc"))
+    assert "data.axes=9" not in str(e.value)
+    # a 9-axis dataset read as 6 axes: data.axes=9 does work there, and is what it says
+    with pytest.raises(CheckpointError, match="data.axes=9"):
+        check_layout(ck, 6, "broad9.ckpt", data_axes=dataset_axes("broad"))

@@ -18,6 +18,20 @@ EVAL_KEYS = keys(EvaluateConfig)  # conf/evaluate.yaml's top level: tcn_ahrs/con
 _D = EvaluateConfig()  # the defaults of keys a hand-built config may lack
 
 
+def dataset_axes(name: str) -> int | None:
+    """The axes a named dataset's config declares (``tcn_ahrs/conf/data/<name>.yaml``: 6 for
+    EuRoC and TUM VI, which have no magnetometer); None for a dataset without one."""
+    from omegaconf import OmegaConf
+
+    from ..config import conf_path
+
+    p = conf_path("data", f"{name}.yaml")
+    if not p.is_file():
+        return None
+    axes = (OmegaConf.to_container(OmegaConf.load(p), resolve=False) or {}).get("axes")
+    return int(axes) if isinstance(axes, int) else None
+
+
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     """``scripts/evaluate.py``: the learned estimator + Raw IMU (+ ``baselines``) on
     ``load_split(data, data.split)``; writes results.json/.md, plots, TUM trajectories."""
@@ -54,7 +68,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         print(f"note: {cfg.ckpt} is a 6-axis model: the magnetometer is not used and every method "
               "is scored as 6-axis (heading relative to the start)")
         axes = 6
-    check_layout(ck, axes, cfg.ckpt)
+    check_layout(ck, axes, cfg.ckpt, data_axes=dataset_axes(str(cfg.data.name)))
     seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
