@@ -138,7 +138,12 @@ def _search_summary(result: Mapping[str, Any]) -> str:
     cfg = result.get("config") or {}
     hy = lambda v: "[" + ",".join(str(x) for x in v) + "]" if isinstance(v, list) else (  # noqa: E731
         "{" + ", ".join(f"{k}: {x}" for k, x in v.items()) + "}" if isinstance(v, dict) else str(v))
-    parts = [f"data={result['dataset']}", f"search.trials={cfg.get('trials')}", f"'search.seeds={hy(cfg.get('seeds'))}'"]
+    from tcn_ahrs.evaluate.main import dataset_axes
+
+    parts = [f"data={result['dataset']}"]
+    if dataset_axes(str(result["dataset"])) not in (None, int(result["axes"])):
+        parts.append(f"data.axes={result['axes']}")
+    parts += [f"search.trials={cfg.get('trials')}", f"'search.seeds={hy(cfg.get('seeds'))}'"]
     from tcn_ahrs.config import SearchSection
 
     default = SearchSection()
