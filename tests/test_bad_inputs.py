@@ -2,6 +2,7 @@
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -392,7 +393,13 @@ def test_a_recording_at_another_rate_than_the_model_was_trained_at_warns(tmp_pat
     model.trained_rate_hz = 285.7
     seq = simulate("slow_rotation", 4.0, 100.0, seed=1)
     with pytest.warns(UserWarning, match=r"at 100 Hz but the model was trained at 285.7 Hz"):
-        LearnedEstimator(model).run(seq, seq.quat[0])
+        LearnedEstimator(model, other_rate="model").run(seq, seq.quat[0])
+    # by default a closed loop, like a residual model, runs there as the backbone with VQF's defaults
+    from tcn_ahrs.estimators.registry import build
+
+    with pytest.warns(UserWarning, match=r"100 Hz.*another device.*backbone with VQF's default parameters"):
+        got = LearnedEstimator(model).run(seq, seq.quat[0]).quat
+    np.testing.assert_allclose(got, build("backbone", axes=9).run(seq, seq.quat[0]).quat, atol=1e-12)
 
 
 def test_a_finite_spike_in_a_recording_is_refused_with_file_field_and_sample(tmp_path):
