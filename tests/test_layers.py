@@ -16,8 +16,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "tcn_ahrs"
 # own __init__: ImuSequence, DataError, __version__). A module may import from its own floor and
 # the floors below it.
 LAYERS = [
-    # scalar kernels written once, compiled by numba and read by torch / TorchScript
-    {"kernels"},
+    # scalar kernels written once, compiled by numba and read by torch / TorchScript; where numba
+    # caches them
+    {"kernels", "numba_cache"},
     # units, frames and SO(3) on tensors; argument checks; the shipped YAML files and their typed
     # schemas (each default once); the commands' error contract and output folders; the TUM writer
     {"conventions", "so3", "validate", "conf", "config", "app", "tum"},

@@ -94,9 +94,16 @@ def coefficients(p, ts, c):
     c[C_WR] = pr * pr / v + pr
 
 # ------------------------------------------------------------------ low-pass filters
-# A group of d components at s[f]: [running, count, state0 (d), state1 (d)]. During the
-# first tau seconds the output is the mean of the samples so far (state1 holds the sum); at
+# A group of d components at s[f]: [running, count, x1 (d), x2 (d), y1 (d), y2 (d)]. During the
+# first tau seconds the output is the mean of the samples so far (x1 holds the sum); at
 # count·ts ≥ tau the filter starts from that mean in steady state (VQF's filterVec).
+# Direct form I: the filter's memory is its last two inputs and outputs, which mean the same
+# whatever the coefficients, so a time step that changes from sample to sample (new
+# coefficients each step) continues the same signal. The transposed direct form II that VQF
+# uses keeps coefficient-dependent states that jump when the coefficients change: on ±30 %
+# timestamp jitter the field's filtered norm and dip jumped enough to flag 100 % of samples as
+# magnetically disturbed (69 % on the same motion sampled evenly). With a fixed step both forms
+# compute the same difference equation (equal to vqf to round-off).
 @jit
 def lp_begin(s, f, tau, ts):
     run = s[f] > 0.5
@@ -107,16 +114,19 @@ def lp_begin(s, f, tau, ts):
 
 @jit
 def lp(s, c, f, d, i, x, at_b, at_a, run, n, start):
-    k0 = f + 2 + i
-    k1 = f + 2 + d + i
+    x1 = f + 2 + i
+    x2 = f + 2 + d + i
+    y1 = f + 2 + 2 * d + i
+    y2 = f + 2 + 3 * d + i
     b0, b1, b2, a1, a2 = c[at_b], c[at_b + 1], c[at_b + 2], c[at_a], c[at_a + 1]
-    y = b0 * x + s[k0]                    # direct form II transposed, a0 = 1
-    r0 = b1 * x - a1 * y + s[k1]
-    r1 = b2 * x - a2 * y
-    total = s[k1] + x
+    y = b0 * x + b1 * s[x1] + b2 * s[x2] - a1 * s[y1] - a2 * s[y2]
+    total = s[x1] + x
     mean = total / n
-    s[k0] = where(run, r0, where(start, mean * (1.0 - b0), 0.0 * mean))
-    s[k1] = where(run, r1, where(start, mean * (b2 - a2), total))
+    zero = 0.0 * mean
+    s[x2] = where(run, s[x1], where(start, mean, zero))
+    s[x1] = where(run, x, where(start, mean, total))
+    s[y2] = where(run, s[y1], where(start, mean, zero))
+    s[y1] = where(run, y, where(start, mean, zero))
     return where(run, y, mean)
 
 @jit

@@ -69,14 +69,15 @@ def _layout(spec: List[Tuple[str, int]]) -> Dict[str, int]:
 
 PARAM = _layout([(f.name, 1) for f in fields(BackboneParams)])
 
-# low-pass filter groups: (name, components); each holds [running, count, state0 (d), state1 (d)]
+# low-pass filter groups: (name, components); each holds [running, count, x1, x2, y1, y2 (d each)]
+# (direct form I: kernels/backbone.py explains why)
 _FILTERS = [("acc_lp", 3), ("rot_lp", 9), ("bias_lp", 2), ("rest_gyro_lp", 3), ("rest_acc_lp", 3),
             ("mag_lp", 2)]
 STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("mag_disturbed", 1),
                  ("k_mag_init", 1), ("bias", 3), ("bias_p", 9), ("rest_time", 1), ("rest_gyro", 3),
                  ("mag_ref_norm", 1), ("mag_ref_dip", 1), ("mag_undisturbed_time", 1),
                  ("mag_reject_time", 1), ("mag_cand_norm", 1), ("mag_cand_dip", 1), ("mag_cand_time", 1)]
-                + [(n, 2 + 2 * d) for n, d in _FILTERS])
+                + [(n, 2 + 4 * d) for n, d in _FILTERS])
 COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
                  ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
                  ("bias_vertical_w", 1), ("bias_rest_w", 1)])

@@ -1,0 +1,109 @@
+"""The search's choice rules, pure functions of the candidates' inner-validation scores: one
+fold and seed (:func:`choose_candidate`), one fold over its seeds (:func:`fold_choice`), the
+release over the folds (:func:`release_choice`), and the bar each outer fold is scored against
+(:func:`best_classical`)."""
+from __future__ import annotations
+
+import math
+from typing import Any, Dict, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..estimators.families import SIMPLICITY
+
+
+def simplicity_rank(name: str) -> int:
+    """Position of a candidate's family (its name's first word) in :data:`SIMPLICITY`; unknown last."""
+    family = name.split(" ")[0]
+    return SIMPLICITY.index(family) if family in SIMPLICITY else len(SIMPLICITY)
+
+
+def choose(candidates: Dict[str, Tuple[float, float]], tie_margin: float, incl_margin: float,
+           incl_bar: Optional[float] = None) -> str:
+    """The chosen candidate from ``{name: (inner-validation AAE, inclination)}``: among those whose
+    inclination is within ``incl_margin`` degrees of ``incl_bar`` (the best classical filter's
+    with defaults; default: the best candidate's), the lowest AAE — unless a simpler family
+    (:data:`SIMPLICITY`, by the name's first word) is within ``tie_margin`` (relative) of it."""
+    finite = {k: v for k, v in candidates.items() if math.isfinite(v[0])}
+    if not finite:
+        raise ValueError("search: every candidate diverged on the inner validation recordings")
+    bar = min(v[1] for v in finite.values()) if incl_bar is None else incl_bar
+    ok = {k: v for k, v in finite.items() if v[1] <= bar + incl_margin} or finite
+    best = min(ok, key=lambda k: ok[k][0])
+    ties = [k for k, v in ok.items() if v[0] <= ok[best][0] * (1.0 + tie_margin)]
+    return min(ties, key=lambda k: (simplicity_rank(k), ok[k][0]))
+
+
+def choose_candidate(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_margin: float,
+                     incl_margin: float) -> str:
+    """The choice among one fold's candidate records (``inner_val``: a row of (AAE, inclination)
+    per inner split; a learned candidate has one row, its ``learned_split``): the classical ones by
+    :func:`choose` on their mean over the splits (inclination bar: the best untuned filter's), then
+    a learned one replaces that choice if it is better by more than ``tie_margin`` on the split it
+    was validated on, at an inclination within ``incl_margin``."""
+    classical = {k: v for k, v in cands.items() if v["calibration"] != "learned"}
+    mean = {k: np.mean(np.asarray(v["inner_val"], dtype=float), axis=0) for k, v in classical.items()}
+    bar_incl = min(float(mean[k][1]) for k, v in classical.items() if not v["tuned"])
+    chosen = choose({k: (float(m[0]), float(m[1])) for k, m in mean.items()}, tie_margin, incl_margin, bar_incl)
+    for name, v in cands.items():
+        if v["calibration"] != "learned":
+            continue
+        # the current choice on the learned split (a learned one has that split's row only)
+        ref = cands[chosen]["inner_val"][0 if cands[chosen]["calibration"] == "learned" else learned_split]
+        got = v["inner_val"][0]
+        if got[0] < ref[0] * (1.0 - tie_margin) and got[1] <= ref[1] + incl_margin:
+            chosen = name
+    return chosen
+
+
+def fold_choice(records: Sequence[Dict[str, Any]], tie_margin: float, incl_margin: float) -> str:
+    """One outer fold's choice from all its seeds: every candidate's inner-validation scores
+    averaged over the seeds (only the tuned knobs differ by seed), then :func:`choose_candidate`.
+    A choice that flipped with the sampler's seed (EuRoC fold 0: closed loop on one seed, the
+    calibrated backbone on two) cannot flip: the fold has one choice, scored for every seed."""
+    first = records[0]
+    pooled = {name: dict(c, inner_val=np.mean([np.asarray(r["candidates"][name]["inner_val"], dtype=float)
+                                                for r in records], axis=0).tolist())
+              for name, c in first["candidates"].items()}
+    return choose_candidate(pooled, int(first.get("learned_split", 0)), tie_margin, incl_margin)
+
+
+def release_choice(result: Dict[str, Any], tie_margin: float) -> Tuple[str, Dict[str, int]]:
+    """The candidate chosen on the most outer folds; a tie is broken on the inner validation — the
+    tied candidates' scores averaged over the folds and seeds (on the learned candidates' inner
+    split when one of them is learned, so all are read on the same recordings) — and within
+    ``tie_margin`` of the best of those, the simpler family. Returns (name, times chosen by name,
+    counted over fold x seed runs)."""
+    from collections import Counter
+
+    counts = Counter(r["chosen"] for r in result["rows"])
+    top = max(counts.values())
+    tied = sorted(k for k, v in counts.items() if v == top)
+    if len(tied) == 1:
+        return tied[0], dict(counts)
+    recs = result["folds"]
+    learned_tied = any(recs[0]["candidates"][k]["calibration"] == "learned" for k in tied)
+
+    def score(name: str) -> float:
+        vals = []
+        for r in recs:
+            c = r["candidates"][name]
+            rows = np.asarray(c["inner_val"], dtype=float)
+            if learned_tied and c["calibration"] != "learned":
+                rows = rows[int(r.get("learned_split", 0))][None]
+            vals.append(float(rows[:, 0].mean()))
+        return float(np.mean(vals))
+
+    scores = {k: score(k) for k in tied}
+    best = min(scores.values())
+    near = [k for k in tied if scores[k] <= best * (1.0 + tie_margin)]
+    return min(near, key=lambda k: (simplicity_rank(k), scores[k])), dict(counts)
+
+
+def best_classical(record: Dict[str, Any]) -> Tuple[str, float, float]:
+    """(name, AAE, best inclination) on one fold's outer recordings of the bar: every family with
+    its defaults, on the raw and on the calibrated signals — the lowest mean AAE, and the lowest
+    inclination of any of them (what the chosen estimator must not be worse than)."""
+    cols = {k: record["test"][k] for k in record["bar"] if record["test"][k].get("aae_deg") is not None}
+    name = min(cols, key=lambda k: cols[k]["aae_deg"])
+    return name, float(cols[name]["aae_deg"]), float(min(v["inclination_deg"] for v in cols.values()))
