@@ -238,7 +238,13 @@ def fit(seqs: Sequence[ImuSequence], cfg: CalibrationConfig = CalibrationConfig(
     if cfg.mag != "none":
         mags = [s.mag for s in seqs if s.mag is not None]
         if mags:
-            cal.mag_matrix, cal.hard_iron = fit_ellipsoid(np.concatenate(mags, 0), cfg.mag)
+            try:
+                cal.mag_matrix, cal.hard_iron = fit_ellipsoid(np.concatenate(mags, 0), cfg.mag)
+            except ValueError as e:  # too little rotation in these recordings to see the ellipsoid
+                msg = f"calibration.mag: {e} (recordings {[s.name for s in seqs]})"
+                if strict:
+                    raise ValueError(msg) from None
+                cal.modes["mag"] = f"none ({msg})"
         else:
             cal.modes["mag"] = "none"  # 6-axis data: nothing to fit
     return cal
