@@ -385,3 +385,24 @@ def _rest_samples(accel: np.ndarray, rate: float, window_s: float = 0.5, tol: fl
 def rest_mask(seq: ImuSequence, window_s: float = 0.5) -> np.ndarray:
     """(N,) bool: samples of ``seq`` at rest (almost constant accelerometer)."""
     return _rest_samples(seq.accel, seq.rate, window_s)
+
+
+JITTER_TOL = 0.02  # relative spread of the steps below which a clock counts as regular
+
+
+def clock_kind(time: np.ndarray) -> dict:
+    """How a recording was sampled, from its timestamps alone: ``regular`` (steps within
+    :data:`JITTER_TOL` of the median), ``jittered`` (a regular stream whose stamps are noisy: every
+    stamp within half a step of one uniform grid, the least-squares line through sample index and
+    time) or ``irregular`` (the steps themselves vary: the stamps wander off any grid). Returns
+    ``kind``, ``step`` (s, the grid's), ``jitter`` (the steps' relative spread, robust: 1.4826 MAD
+    / median) and ``off_grid`` (the largest distance of a stamp from the grid, in steps)."""
+    t = np.asarray(time, dtype=np.float64)
+    d = np.diff(t)
+    med = float(np.median(d))
+    jitter = float(1.4826 * np.median(np.abs(d - med)) / med)
+    k = np.arange(t.shape[0], dtype=np.float64)
+    step, t0 = np.polyfit(k, t, 1)
+    off = float(np.max(np.abs(t - (t0 + step * k))) / step)
+    kind = "regular" if jitter < JITTER_TOL else ("jittered" if off < 0.5 else "irregular")
+    return {"kind": kind, "step": float(step), "jitter": jitter, "off_grid": off, "grid_start": float(t0)}

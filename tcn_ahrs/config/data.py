@@ -91,3 +91,4 @@ class GenericDeclarations:
     nav_frame: Any = "ENU"             # ENU | NED | NWU | 3x3 C_enu_from_frame (rows)
     gt_body_from_imu: Optional[List[float]] = None  # quaternion (w, x, y, z) or 3x3 matrix; null: identity
     rate: Optional[float] = None       # nominal rate, Hz; null: from t
+    clock: str = "stamps"              # stamps | nominal (a regular stream with jittered stamps: the grid)

@@ -32,6 +32,9 @@ key                   values                                 default
                       relative to the IMU: quaternion
                       (w,x,y,z) or 3x3 matrix ``C_body_from_imu``
 ``rate``              nominal rate in Hz                     from ``t``
+``clock``             ``stamps``, or ``nominal``: a regular  ``stamps``
+                      stream whose timestamps jitter runs
+                      on its uniform grid (both warn)
 ====================  =====================================  ==========
 
 converted here with :mod:`tcn_ahrs.conventions`. A sidecar key not in this table is an error
@@ -44,15 +47,16 @@ flipped accelerometer, x,y,z,w quaternions or a ground truth that is not z-up ar
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import fields
 from pathlib import Path
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
 from .. import conventions as conv
 from ..config.data import GenericDeclarations
-from ..sequence import DataError, ImuSequence
+from ..sequence import DataError, ImuSequence, clock_kind
 from ._common import check_finite, check_increasing, matrix_to_quat, open_hdf5, quat_to_matrix, read_numeric_csv
 
 SUFFIXES = (".csv", ".h5", ".hdf5")
@@ -109,6 +113,35 @@ def _read_sidecar(path: Path) -> Dict:
         raise DataError(str(side), "file", "expected a YAML mapping of unit/frame declarations")
     check_declarations(str(side), cfg)
     return cfg
+
+
+def _clock(src: str, t: np.ndarray, declared: str) -> Tuple[np.ndarray, str]:
+    """The timestamps the filters run on, and what was found (:func:`~tcn_ahrs.sequence.clock_kind`).
+    Jittered stamps on a regular stream make every step wrong by the jitter (measured: ±30 %
+    stamp noise took the learned model from 4.3° to 14.2° AAE) and are warned about; declared
+    ``clock: nominal``, the stream runs on its uniform grid instead. Truly irregular sampling
+    is warned about and runs on its steps (``nominal`` is refused there: there is no grid)."""
+    if declared not in ("stamps", "nominal"):
+        raise DataError(src, "clock", f"expected 'stamps' or 'nominal', got {declared!r}")
+    c = clock_kind(t)
+    what = (f"timestamps jitter by {100 * c['jitter']:.0f} % of the {1.0 / c['step']:.4g} Hz step (every stamp "
+            f"within {c['off_grid']:.2f} steps of a uniform grid)")
+    if c["kind"] == "jittered":
+        if declared == "nominal":
+            warnings.warn(f"{src}: {what}: run on the nominal period (declared clock: nominal)", stacklevel=3)
+            k = np.arange(t.shape[0], dtype=np.float64)
+            return c["grid_start"] + c["step"] * k, "nominal"
+        warnings.warn(f"{src}: {what}: a regular stream with noisy timestamps? The filters integrate over the "
+                      "stamped steps; declare clock: nominal to run on the nominal period", stacklevel=3)
+        return t, "jittered"
+    if c["kind"] == "irregular":
+        if declared == "nominal":
+            raise DataError(src, "clock", f"declared nominal, but the sampling is irregular (stamps up to "
+                                          f"{c['off_grid']:.1f} steps off any uniform grid): drop the declaration")
+        warnings.warn(f"{src}: irregular sampling (steps vary by {100 * c['jitter']:.0f} %, stamps up to "
+                      f"{c['off_grid']:.1f} steps off any uniform grid): the filters run on the actual steps",
+                      stacklevel=3)
+    return t, c["kind"]
 
 
 def check_declarations(src: str, attrs: Dict) -> None:
@@ -248,6 +281,7 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     if n < 2:
         raise DataError(src, "t", f"expected at least 2 samples, got {n}")
     check_increasing(src, "t", t)
+    t, clock_note = _clock(src, t, attrs.get("clock", _DECL.clock))
     for key, width in (("gyr", 3), ("acc", 3), ("mag", 3), ("quat", 4)):
         if a[key] is not None and (a[key].ndim != 2 or a[key].shape != (n, width)):
             raise DataError(src, key, f"expected shape ({n}, {width}), got {a[key].shape}")
@@ -292,6 +326,6 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
         if not (rate > 0 and abs(rate / measured - 1.0) <= 0.05):
             raise DataError(src, "rate", f"declared {rate:g} Hz, but the timestamps step at {measured:.4g} Hz "
                                          "(median): correct the declaration or drop it (the rate is read from t)")
-    meta = {"dataset": dataset, "declared": {k: attrs[k] for k in ATTR_KEYS if k in attrs}}
+    meta = {"dataset": dataset, "declared": {k: attrs[k] for k in ATTR_KEYS if k in attrs}, "clock": clock_note}
     return ImuSequence(name=name, source=src, time=t, gyro=gyro, accel=acc, mag=mag, quat=quat,
                        quat_valid=valid, score_mask=score, rate=rate, meta=meta)
