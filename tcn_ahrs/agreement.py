@@ -9,6 +9,7 @@ import numpy as np
 from .conventions import GRAVITY
 
 EXCITED_RATE = 10.0 * np.pi / 180.0  # rad/s, spread of the ground-truth rate about an axis
+MIN_AXIS_R2 = 0.8  # share of an axis's reference signal the fitted map must explain to judge it
 
 
 def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> dict:
@@ -84,12 +85,16 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
       ``wiring``: the signed permutation nearest to it (which gyro axis reads which body axis);
       ``det``: its determinant's sign (−1: one axis flipped or two swapped, a left-handed frame);
       ``misalignment_deg``: the angle of the rotation nearest to ``A`` (a rotated body frame);
+    * ``axis_r2``: per body axis, the share of its reference signal the map explains;
+      ``judged_axes``: the excited axes with ``axis_r2`` ≥ :data:`MIN_AXIS_R2` — the only ones
+      whose wiring the checks judge (the evidence); ``rotation``: the rotation nearest to ``A``;
     * ``dead_axes``: gyro axes that read (almost) nothing while the ground truth turns about them;
     * ``saturated``: {axis: level} where the gyro sticks at its extreme while the ground truth
       turns faster."""
     moving = np.linalg.norm(w_gt, axis=1) > min_rate
     out = {"gyro_to_gt": None, "wiring": None, "det": None, "misalignment_deg": None, "dead_axes": [],
-           "saturated": {}, "gt_moving": int(moving.sum()), "gt_scale": None, "excited_axes": []}
+           "saturated": {}, "gt_moving": int(moving.sum()), "gt_scale": None, "excited_axes": [],
+           "judged_axes": [], "axis_r2": None, "rotation": None}
     if moving.sum() < 30:
         return out
     g, r = w_gyro[moving], w_gt[moving]
@@ -112,6 +117,15 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
     # pitch by 6-8 deg/s of vibration, too little to fit a rotation about those axes)
     out["excited_axes"] = [k for k in range(3) if gt_spread[k] > excited]
     a = np.linalg.lstsq(g, r, rcond=None)[0].T  # r ≈ a g
+    # the evidence per body axis: how much of its reference signal the fitted map explains (R²).
+    # An axis whose reference is noisier than its motion (a pendulum's motion-capture rates
+    # about the axes it does not swing about: |correlation| ≤ 0.58 with the gyro) is not judged:
+    # its row of the map is noise, and wiring, handedness and mount rotation read from it were
+    # false refusals
+    resid = r - g @ a.T
+    r2 = 1.0 - resid.var(0) / np.maximum(r.var(0), 1e-300)
+    out["axis_r2"] = [float(x) for x in r2]
+    out["judged_axes"] = [k for k in out["excited_axes"] if r2[k] >= MIN_AXIS_R2]
     # how much of the expected signal the map explains: judged only where it explains most (an
     # accelerometer in fast translation reads mostly its own motion, not gravity)
     out["explained"] = float(1.0 - ((r - g @ a.T) ** 2).sum() / max(((r - r.mean(0)) ** 2).sum(), 1e-12))
@@ -127,4 +141,5 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
     u, _, vt = np.linalg.svd(a)
     rot = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
     out["misalignment_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
+    out["rotation"] = rot  # C_body_from_imu nearest to the map: what gt_body_from_imu declares
     return out

@@ -244,18 +244,18 @@ class ImuSequence:
         negated axes — causes the up test below would misreport as a ground-truth frame."""
         if not fit or fit.get("gyro_to_gt") is None:
             return
-        excited = set(fit["excited_axes"])
-        if len(excited) < 2 or fit.get("explained", 0.0) < 0.5:
+        judged = sorted(fit.get("judged_axes") or [])
+        if len(judged) < 2 or fit.get("explained", 0.0) < 0.5:
             return
         a, perm = fit["gyro_to_gt"], fit["wiring"]
-        if fit["det"] < 0 and float(np.linalg.det(perm)) < 0:
+        if fit["det"] < 0 and float(np.linalg.det(perm)) < 0 and len(judged) == 3:
             self._fail("accel", "the accelerometer's axes form a left-handed frame against the ground truth's body "
-                                f"frame (fitted map {np.round(a, 2).tolist()}): one axis has the wrong sign or two are "
-                                "swapped; negate or swap the column")
-        wrong = [i for i in sorted(excited) if perm[i, i] != 1.0]
+                                f"frame (fitted map {np.round(a, 2).tolist()}; {evidence_text(fit)}): one axis has the "
+                                "wrong sign or two are swapped; negate or swap the column")
+        wrong = [i for i in judged if perm[i, i] != 1.0]
         if wrong:
             self._fail("accel", f"axes wired differently from the gyro's and the ground truth's body frame (fitted "
-                                f"map {np.round(a, 2).tolist()}): fix the accelerometer's columns")
+                                f"map {np.round(a, 2).tolist()}; {evidence_text(fit)}): fix the accelerometer's columns")
 
     def _check_gyro_axes(self, agree: dict) -> None:
         """Per-axis wiring against the ground-truth body rate (:func:`axis_fit`): a dead or
@@ -280,25 +280,29 @@ class ImuSequence:
             self._fail("gyro", f"expected rad/s; where the ground truth turns it turns {gs:.3g} times as fast as "
                                f"the gyro says (median over {agree['gt_moving']} samples): check the gyro's and "
                                "the timestamps' units")
-        a, perm, excited = agree.get("gyro_to_gt"), agree.get("wiring"), set(agree.get("excited_axes") or [])
-        if a is None or len(excited) < 2 or agree.get("explained", 0.0) < 0.5:
+        a, perm, judged = agree.get("gyro_to_gt"), agree.get("wiring"), sorted(agree.get("judged_axes") or [])
+        if a is None or not judged:
             return
-        if agree["det"] < 0:
+        evidence = evidence_text(agree)
+        if agree["det"] < 0 and len(judged) == 3:  # handedness needs all three axes judged
             self._fail("gyro", "the gyro's axes form a left-handed frame against the ground truth's body frame "
-                               f"(fitted map {np.round(a, 2).tolist()}, determinant < 0): one axis has the wrong "
-                               "sign or two axes are swapped; no rotation fixes that: negate or swap the column")
-        wrong = [i for i in sorted(excited) if perm[i, i] != 1.0]
+                               f"(fitted map {np.round(a, 2).tolist()}, determinant < 0; {evidence}): one axis has "
+                               "the wrong sign or two axes are swapped; no rotation fixes that: negate or swap the column")
+        wrong = [i for i in judged if perm[i, i] != 1.0]
         if wrong:
             reads = "; ".join(f"the body's {xyz[i]} rate is read by gyro {'-' if perm[i].sum() < 0 else '+'}"
                               f"{xyz[int(np.argmax(np.abs(perm[i])))]}" for i in wrong)
+            # a mount rotation is a fix only where every axis is judged and the wiring is a rotation
+            mount = (f", or, if the IMU is mounted rotated, declare gt_body_from_imu: {perm.astype(int).tolist()}"
+                     if len(judged) == 3 and np.linalg.det(perm) > 0 else "")
             self._fail("gyro", f"axes wired differently from the ground truth's body frame: {reads} (fitted map "
-                               f"{np.round(a, 2).tolist()}): fix the columns, or, if the IMU is mounted rotated, "
-                               f"declare gt_body_from_imu: {perm.astype(int).tolist()}")
+                               f"{np.round(a, 2).tolist()}; {evidence}): fix the columns{mount}")
         mis = agree.get("misalignment_deg")
-        if mis is not None and len(excited) == 3 and mis > MAX_MISALIGNMENT_DEG:
+        if mis is not None and len(judged) == 3 and mis > MAX_MISALIGNMENT_DEG:
+            rot = np.round(agree["rotation"], 4).tolist()
             self._fail("quat", f"the ground truth's body frame is rotated {mis:.1f} deg against the IMU's (fitted "
-                               f"from the rates about all three axes; expected < {MAX_MISALIGNMENT_DEG:g}): declare "
-                               "gt_body_from_imu (the IMU's frame in the ground truth's body frame)")
+                               f"from the rates about all three axes; {evidence}; expected < {MAX_MISALIGNMENT_DEG:g}): "
+                               f"declare gt_body_from_imu: {rot} (C_body_from_imu, rows)")
 
     def _array(self, name: str, a, shape) -> np.ndarray:
         try:
@@ -385,6 +389,18 @@ def _rest_samples(accel: np.ndarray, rate: float, window_s: float = 0.5, tol: fl
 def rest_mask(seq: ImuSequence, window_s: float = 0.5) -> np.ndarray:
     """(N,) bool: samples of ``seq`` at rest (almost constant accelerometer)."""
     return _rest_samples(seq.accel, seq.rate, window_s)
+
+
+def evidence_text(fit: dict) -> str:
+    """Which axes a wiring verdict rests on: ``judged x, z (R² 0.99, 0.97); not judged: y (R² 0.31)``."""
+    r2, judged = fit.get("axis_r2") or [float("nan")] * 3, set(fit.get("judged_axes") or [])
+    yes = [k for k in range(3) if k in judged]
+    no = [k for k in range(3) if k not in judged]
+    text = "judged " + ", ".join("xyz"[k] for k in yes) + " (R² " + ", ".join(f"{r2[k]:.2f}" for k in yes) + ")"
+    if no:
+        text += "; not judged (too little motion or a noisier reference): " + ", ".join(
+            f"{'xyz'[k]} (R² {r2[k]:.2f})" for k in no)
+    return text
 
 
 JITTER_TOL = 0.02  # relative spread of the steps below which a clock counts as regular
