@@ -74,3 +74,33 @@ def test_every_suggested_mount_loads_when_applied(tmp_path, mount):
     _write(tmp_path / "fixed.h5", seq, body, gt_body_from_imu=fix)
     fixed = generic.load_recording(tmp_path, "fixed")
     np.testing.assert_allclose(np.abs(np.sum(fixed.quat * seq.quat, axis=1)), 1.0, atol=2e-4)
+
+
+def test_a_folder_evaluates_every_good_recording_and_lists_the_refused(tmp_path, capsys):
+    """One refused file no longer stops the folder: the good ones are evaluated, the refused one
+    is named with its reason on screen and in refused.txt, and the exit status is non-zero."""
+    import json
+    from pathlib import Path
+
+    import h5py
+
+    from tcn_ahrs.cli import main
+
+    root = tmp_path / "mine"
+    root.mkdir()
+    for i, prof in enumerate(["walking", "slow_rotation", "fast_rotation"]):
+        s = simulate(prof, 12.0, 100.0, seed=i, device_seed=3)
+        gyro = np.degrees(s.gyro) if i == 2 else s.gyro  # rec2: deg/s, undeclared
+        with h5py.File(root / f"rec{i}.h5", "w") as f:
+            for key, val in (("t", s.time), ("gyr", gyro), ("acc", s.accel), ("mag", s.mag), ("quat", s.quat)):
+                f[key] = val
+    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "oxiod9.json"
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", "data=generic", f"data.root={root}", "data.split=all", f"ckpt={ckpt}",
+              f"out={tmp_path / 'ev'}", "plots=false", "trajectories=false", f"hydra.run.dir={tmp_path / 'h'}"])
+    assert e.value.code != 0
+    printed = capsys.readouterr()
+    assert "1 recording(s) refused" in printed.out + printed.err and "rec2" in printed.out + printed.err
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert res["recordings"] == ["rec0", "rec1"]
+    assert (tmp_path / "ev" / "refused.txt").read_text().startswith("rec2: ")

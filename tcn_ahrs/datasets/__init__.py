@@ -26,7 +26,7 @@ from __future__ import annotations
 import importlib
 import warnings
 from pathlib import Path
-from typing import Any, Dict, List, Mapping, Optional
+from typing import Any, Dict, List, Mapping, Optional, Tuple
 
 import numpy as np
 
@@ -134,7 +134,8 @@ def split_recording(seq: ImuSequence, train_part: Mapping) -> tuple:
     return tuple(parts)
 
 
-def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequence]:
+def load_split(data_cfg: Mapping, split: Optional[str] = None,
+               refused: Optional[List[Tuple[str, str]]] = None) -> List[ImuSequence]:
     """The recordings of one split, as :class:`ImuSequence` objects (see the module docstring).
 
     split (default ``data_cfg.split``, else ``train``): ``train`` = the training parts of the
@@ -144,6 +145,10 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
     recordings, ``test`` = the test recordings present under root (absent ones are skipped with
     a warning naming them), ``all`` = every recording found under root, full length.
     ``axes: 6`` drops the magnetometer.
+
+    ``refused``: a list to collect ``(recording, reason)`` of recordings whose checks refuse them
+    (:class:`DataError`) while the others load — what a folder's evaluation wants; without it
+    the first refusal raises (training must not silently lose a recording).
     """
     name = _get(data_cfg, "name")
     split = split or _get(data_cfg, "split", "train")
@@ -187,10 +192,16 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None) -> List[ImuSequen
         names = [r for r in names if r in available]
     seqs: List[ImuSequence] = []
     for rec in names:
-        if getattr(mod, "WANTS_CONFIG", False):  # e.g. the ROS bag topics
-            seq = mod.load_recording(root, rec, cfg=plain(data_cfg))
-        else:
-            seq = mod.load_recording(root, rec)
+        try:
+            if getattr(mod, "WANTS_CONFIG", False):  # e.g. the ROS bag topics
+                seq = mod.load_recording(root, rec, cfg=plain(data_cfg))
+            else:
+                seq = mod.load_recording(root, rec)
+        except DataError as e:
+            if refused is None:
+                raise
+            refused.append((rec, str(e)))
+            continue
         seq.meta.setdefault("recording", rec)
         if split in ("train", "val") and fold is None:
             train, val = split_recording(seq, _get(data_cfg, "train_part", {}))

@@ -60,8 +60,9 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     if is_estimator_file(cfg.ckpt):  # a classical family chosen by tcn-ahrs search
         learned = load_estimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name))
         axes = min(axes, int(learned.axes or axes))
-        seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
-        return _run(cfg, learned, seqs, axes, out)
+        refused: list = []
+        seqs = [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt]
+        return _run(cfg, learned, seqs, axes, out, refused)
     ck = load_checkpoint(cfg.ckpt)
     if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
         # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
@@ -69,20 +70,25 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
               "is scored as 6-axis (heading relative to the start)")
         axes = 6
     check_layout(ck, axes, cfg.ckpt, data_axes=dataset_axes(str(cfg.data.name)))
-    seqs = [s for s in load_split(cfg.data, str(cfg.data.split)) if s.has_gt]
+    refused = []
+    seqs = [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt]
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
                                other_rate=str(cfg.get("other_rate", _D.other_rate)))
-    return _run(cfg, learned, seqs, axes, out)
+    return _run(cfg, learned, seqs, axes, out, refused)
 
 
-def _run(cfg: DictConfig, learned, seqs, axes: int, out: str) -> Dict[str, Any]:
-    """The chosen estimator + Raw IMU (+ ``baselines``) through the runner, written to ``out``."""
+def _run(cfg: DictConfig, learned, seqs, axes: int, out: str, refused=()) -> Dict[str, Any]:
+    """The chosen estimator + Raw IMU (+ ``baselines``) through the runner, written to ``out``.
+    Recordings the loader ``refused`` (name, reason) are listed on screen and in
+    ``refused.txt``; the good ones are evaluated; then the command fails (exit status 2), so
+    nothing refused is silently dropped."""
     from ..estimators.registry import baseline_estimators, load_plugins
 
+    why = "".join(f"\n  {name}: {reason}" for name, reason in refused)
     if not seqs:
         raise ValueError(f"evaluate: no recordings with ground truth in data '{cfg.data.name}' split "
-                         f"'{cfg.data.split}' (root {cfg.data.get('root')})")
+                         f"'{cfg.data.split}' (root {cfg.data.get('root')})" + (f"; refused:{why}" if refused else ""))
     load_plugins(cfg.get("plugins"))
     estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
     with staged_output(out, bool(cfg.get("overwrite", _D.overwrite)), "evaluate") as stage:
@@ -90,6 +96,11 @@ def _run(cfg: DictConfig, learned, seqs, axes: int, out: str) -> Dict[str, Any]:
                        plots=bool(cfg.get("plots", _D.plots)),
                        trajectories=bool(cfg.get("trajectories", _D.trajectories)),
                        align=cfg.get("align", _D.align))
+        if refused:
+            (stage / "refused.txt").write_text("".join(f"{name}: {reason}\n" for name, reason in refused))
     print(f"results in {out}")
     print_table(res)
+    if refused:
+        raise ValueError(f"evaluate: {len(refused)} recording(s) refused (the other {len(seqs)} are evaluated in "
+                         f"{out}; the reasons also in {Path(out) / 'refused.txt'}):{why}")
     return res
