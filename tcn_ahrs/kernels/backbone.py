@@ -42,7 +42,8 @@ from .backbone_layout import (  # noqa: F401 (the layout, read by the step as co
     P_MAG_REJ_FACTOR, S_GQ, S_AQ, S_DELTA, S_REST, S_MAGDIST, S_KMINIT, S_BIAS, S_P, S_REST_T, S_REST_G,
     S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T, S_MCAND_N, S_MCAND_D, S_MCAND_T, F_ACC, F_ROT, F_BIAS, F_RG,
     F_RA, F_MAG, C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B, C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V,
-    C_WM, C_WV, C_WR, DEG, EPS, initial_state)
+    C_WM, C_WV, C_WR, DEG, EPS, initial_state, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, S_APREV, S_ASAME_T,
+    S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES)
 from . import quat as _quat
 from .ops import float_ops
 
@@ -159,15 +160,34 @@ def quat9(s):
 
 # ------------------------------------------------------------------ gyroscope
 @jit
+def frozen_check(s, p, ts, prev, same_t, same_n, flag, x, y, z):
+    """Sensor health without ground truth: whether a sensor's three readings have repeated
+    exactly (bit for bit) for ``frozen_time`` and :data:`FROZEN_MIN_SAMPLES` samples — a frozen
+    or disconnected sensor; its noise makes a real one change. Kept in the state at ``prev``
+    (last reading), ``same_t``/``same_n`` (how long it repeated), ``flag``; returns the flag."""
+    x_, y_, z_ = nograd(x), nograd(y), nograd(z)
+    same = both(x_ == s[prev], both(y_ == s[prev + 1], z_ == s[prev + 2]))
+    t = where(same, s[same_t] + ts, 0.0 * x_)
+    n = where(same, s[same_n] + 1.0, 0.0 * x_)
+    frozen = both(p[P_FROZEN_T] > 0.0, both(t >= p[P_FROZEN_T], n >= FROZEN_MIN_SAMPLES))
+    s[same_t], s[same_n] = t, n
+    s[prev], s[prev + 1], s[prev + 2] = x_, y_, z_
+    s[flag] = where(frozen, 1.0 + 0.0 * x_, 0.0 * x_)
+    return frozen
+
+@jit
 def gyro_update(s, p, c, gx, gy, gz):
     ts = c[C_TS]
+    # a frozen gyro is not integrated (the attitude holds), and is not rest: the bias must not
+    # converge to its stuck reading
+    frozen = frozen_check(s, p, ts, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, gx, gy, gz)
     if p[P_REST_BIAS] > 0.5 or p[P_MAG_REJ] > 0.5:
         # rest detection, gyro part: deviation from the low-passed rate (decisions only)
         l0, l1, l2 = lp3(s, c, F_RG, nograd(gx), nograd(gy), nograd(gz), C_REST_B, C_REST_A, p[P_REST_TAU], ts)
         d0, d1, d2 = nograd(gx) - l0, nograd(gy) - l1, nograd(gz) - l2
         clip_ = p[P_CLIP] * DEG
-        moving = either(d0 * d0 + d1 * d1 + d2 * d2 >= (p[P_REST_TH_G] * DEG) ** 2,
-                        either(fabs(l0) > clip_, either(fabs(l1) > clip_, fabs(l2) > clip_)))
+        moving = either(frozen, either(d0 * d0 + d1 * d1 + d2 * d2 >= (p[P_REST_TH_G] * DEG) ** 2,
+                                       either(fabs(l0) > clip_, either(fabs(l1) > clip_, fabs(l2) > clip_))))
         s[S_REST_T] = where(moving, 0.0 * l0, s[S_REST_T])
         s[S_REST] = where(moving, 0.0 * l0, s[S_REST])
         s[S_REST_G], s[S_REST_G + 1], s[S_REST_G + 2] = l0, l1, l2
@@ -176,7 +196,7 @@ def gyro_update(s, p, c, gx, gy, gz):
     wz = gz - s[S_BIAS + 2]
     n2 = wx * wx + wy * wy + wz * wz
     norm = sqrt(n2 + 1e-300)  # the tiny term keeps the gradient finite at a zero rate
-    turn = norm > EPS
+    turn = both(norm > EPS, negate(frozen))
     safe = where(turn, norm, 1.0 + 0.0 * norm)
     half = norm * ts / 2.0
     cw = cos(half)
@@ -192,10 +212,17 @@ def gyro_update(s, p, c, gx, gy, gz):
 @jit
 def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
     ts = c[C_TS]
+    # a frozen accelerometer is not trusted: no inclination correction, no bias update from it,
+    # no rest
+    frozen = frozen_check(s, p, ts, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, ax, ay, az)
+    acc_trust = where(frozen, 0.0 * acc_trust, acc_trust)
+    # nor is the bias learnt while either sensor is frozen: the inclination drift of a held gyro
+    # would be read as bias and carried past the fault
+    bias_trust = where(either(frozen, s[S_GFROZEN] > 0.5), 0.0 * bias_trust, bias_trust)
     if p[P_REST_BIAS] > 0.5:
         l0, l1, l2 = lp3(s, c, F_RA, nograd(ax), nograd(ay), nograd(az), C_REST_B, C_REST_A, p[P_REST_TAU], ts)
         d0, d1, d2 = nograd(ax) - l0, nograd(ay) - l1, nograd(az) - l2
-        still = d0 * d0 + d1 * d1 + d2 * d2 < p[P_REST_TH_A] ** 2
+        still = both(negate(frozen), d0 * d0 + d1 * d1 + d2 * d2 < p[P_REST_TH_A] ** 2)
         rest_t = where(still, s[S_REST_T] + ts, 0.0 * l0)
         s[S_REST] = where(still, where(rest_t >= p[P_REST_MIN_T], 1.0 + 0.0 * l0, s[S_REST]), 0.0 * l0)
         s[S_REST_T] = rest_t

@@ -45,6 +45,11 @@ class BackboneParams:
     mag_min_undisturbed_time: float = 0.5  # s
     mag_max_rejection_time: float = 60.0   # s
     mag_rejection_factor: float = 2.0
+    # sensor health, no ground truth needed (not in VQF): a sensor whose three readings repeat
+    # exactly for this long (and FROZEN_MIN_SAMPLES samples) is frozen — its noise makes that
+    # improbable (the longest repeat in BROAD, EuRoC, TUM VI and OxIOD: 5 samples, 17 ms) — and is
+    # then neither integrated (gyro) nor trusted (accelerometer); 0 switches the check off
+    frozen_time: float = 0.1             # s
 
     def vector(self) -> Tuple[float, ...]:
         return tuple(float(v) for v in astuple(self))
@@ -76,7 +81,9 @@ _FILTERS = [("acc_lp", 3), ("rot_lp", 9), ("bias_lp", 2), ("rest_gyro_lp", 3), (
 STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("mag_disturbed", 1),
                  ("k_mag_init", 1), ("bias", 3), ("bias_p", 9), ("rest_time", 1), ("rest_gyro", 3),
                  ("mag_ref_norm", 1), ("mag_ref_dip", 1), ("mag_undisturbed_time", 1),
-                 ("mag_reject_time", 1), ("mag_cand_norm", 1), ("mag_cand_dip", 1), ("mag_cand_time", 1)]
+                 ("mag_reject_time", 1), ("mag_cand_norm", 1), ("mag_cand_dip", 1), ("mag_cand_time", 1),
+                 ("gyr_prev", 3), ("gyr_same_time", 1), ("gyr_same_count", 1), ("gyr_frozen", 1),
+                 ("acc_prev", 3), ("acc_same_time", 1), ("acc_same_count", 1), ("acc_frozen", 1)]
                 + [(n, 2 + 4 * d) for n, d in _FILTERS])
 COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
                  ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
@@ -108,6 +115,10 @@ S_BIAS, S_P, S_REST_T, S_REST_G = _S["bias"], _S["bias_p"], _S["rest_time"], _S[
 S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T = (_S["mag_ref_norm"], _S["mag_ref_dip"], _S["mag_undisturbed_time"],
                                           _S["mag_reject_time"])
 S_MCAND_N, S_MCAND_D, S_MCAND_T = _S["mag_cand_norm"], _S["mag_cand_dip"], _S["mag_cand_time"]
+S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN = _S["gyr_prev"], _S["gyr_same_time"], _S["gyr_same_count"], _S["gyr_frozen"]
+S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN = _S["acc_prev"], _S["acc_same_time"], _S["acc_same_count"], _S["acc_frozen"]
+P_FROZEN_T = _P["frozen_time"]
+FROZEN_MIN_SAMPLES = 10.0  # and at least this many repeated samples (a slow IMU's 0.1 s is few)
 F_ACC, F_ROT, F_BIAS, F_RG, F_RA, F_MAG = (_S["acc_lp"], _S["rot_lp"], _S["bias_lp"], _S["rest_gyro_lp"],
                                            _S["rest_acc_lp"], _S["mag_lp"])
 C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B, C_MAG_A = (_C["ts"], _C["acc_b"], _C["acc_a"], _C["rest_b"],

@@ -1,0 +1,105 @@
+"""Sensor health without ground truth (issue: a gyro frozen for 5 s in fast motion was accepted
+with no flag, 81° error while frozen and 52° after): a sensor whose three readings repeat
+exactly is flagged frozen, a frozen gyro is not integrated and a frozen accelerometer not
+trusted, and the filter recovers faster than VQF; real recordings raise no flag."""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tcn_ahrs.datasets.simulate import simulate
+from tcn_ahrs.filters import backbone as bb
+
+RATE = 100.0
+K0, K1 = 2000, 2500  # 20-25 s frozen
+# a clean magnetometer, so the heading's recovery is the filters', not the field's acceptance
+CLEAN_MAG = dict(hard_iron_std_ut=0.0, hard_iron_repeatability_ut=0.0, mag_disturbances_per_minute=0.0)
+
+
+def _angle(q, r):
+    return np.degrees(2 * np.arccos(np.abs(np.sum(q * r, 1)).clip(max=1.0)))
+
+
+def _inclination(q, r):
+    from scipy.spatial.transform import Rotation
+
+    up = lambda x: Rotation.from_quat(x[:, [1, 2, 3, 0]]).inv().apply([0, 0, 1])  # noqa: E731
+    return np.degrees(np.arccos(np.clip(np.sum(up(q) * up(r), 1), -1, 1)))
+
+
+@pytest.fixture(scope="module")
+def walk():
+    return simulate("walking", 60.0, RATE, seed=5, device_seed=2, **CLEAN_MAG)
+
+
+def _frozen(seq, sensor):
+    f = copy.deepcopy(seq)
+    arr = f.gyro if sensor == "gyro" else f.accel
+    arr[K0:K1] = arr[K0]
+    return f
+
+
+@pytest.mark.parametrize("sensor", ["gyro", "acc"])
+def test_a_frozen_sensor_is_flagged_and_the_filter_recovers_faster_than_vqf(walk, sensor):
+    from tcn_ahrs.estimators.registry import build
+
+    f = _frozen(walk, sensor)
+    out = bb.run(f.gyro, f.accel, f.mag, f.dt, bb.BackboneParams(), q0=f.quat[0])
+    flag = out[f"{sensor}_frozen"]
+    onset = int(0.1 * RATE) + 1
+    assert flag[K0 + onset:K1].all() and not flag[:K0].any() and not flag[K1 + 1:].any()
+    other = out["acc_frozen" if sensor == "gyro" else "gyro_frozen"]
+    assert not other.any()
+    vqf = build("vqf", 9).run(f, f.quat[0], 0).quat
+    after = slice(K1 + int(10 * RATE), K1 + int(20 * RATE))  # 10-20 s after the fault
+    ours, theirs = _angle(out["quat"], f.quat)[after].mean(), _angle(vqf, f.quat)[after].mean()
+    assert ours <= theirs  # measured: gyro 15.5 vs 40.4, accelerometer 1.7 vs 2.2 deg
+    if sensor == "gyro":  # held, not integrated: the inclination stays (2.6 vs 47 deg integrating it)
+        unchecked = bb.run(f.gyro, f.accel, f.mag, f.dt, bb.BackboneParams(frozen_time=0.0), q0=f.quat[0])
+        during = slice(K0, K1)
+        assert _inclination(out["quat"], f.quat)[during].mean() < 0.2 * _inclination(unchecked["quat"],
+                                                                                     f.quat)[during].mean()
+
+
+def test_the_c_runtime_flags_a_frozen_gyro(tmp_path):
+    import shutil
+
+    from tcn_ahrs.export.c import CRuntime, compile_c, export_c
+
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.skip("no C compiler")
+    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "broad9.ckpt"
+    paths = export_c(ckpt, tmp_path, "m")
+    rt = CRuntime(compile_c(paths["c"], tmp_path / "libm.so", "double", cc), "m", 9)
+    rate = 285.71
+    seq = simulate("walking", 20.0, rate, seed=1, device_seed=2, **CLEAN_MAG)
+    imu = np.concatenate([seq.gyro, seq.accel, seq.mag], 1).astype(np.float32)
+    k0, k1 = int(8 * rate), int(13 * rate)
+    imu[k0:k1, :3] = imu[k0, :3]
+    rt.reset(seq.quat[0])
+    flags = np.array([rt.step(imu[k], 1.0 / rate)[4] for k in range(imu.shape[0])])
+    frozen = (flags & 16) > 0
+    assert frozen[k0 + int(0.1 * rate) + 1:k1].all() and not frozen[:k0].any() and not frozen[k1 + 1:].any()
+    assert not (flags & 32).any()
+
+
+@pytest.mark.parametrize("dataset", ["broad", "euroc", "tumvi", "oxiod"])
+def test_real_recordings_raise_no_frozen_flag(dataset):
+    """The longest exact repeat of all three readings in the four datasets is 5 samples (BROAD);
+    the check needs 10 samples and 0.1 s."""
+    from omegaconf import OmegaConf
+
+    from tcn_ahrs.config import conf_path
+    from tcn_ahrs.datasets import load_split
+
+    cfg = OmegaConf.to_container(OmegaConf.load(conf_path("data", f"{dataset}.yaml")), resolve=True)
+    if not Path(cfg["root"]).is_dir():
+        pytest.skip(f"{dataset} not in ../shared")
+    cfg["fold"] = None
+    for seq in load_split(cfg, "trainval")[:3]:
+        out = bb.run(seq.gyro, seq.accel, seq.mag, seq.dt, bb.BackboneParams(), q0=np.array([1.0, 0, 0, 0]))
+        assert not out["gyro_frozen"].any() and not out["acc_frozen"].any(), seq.name
