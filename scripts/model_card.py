@@ -1,6 +1,6 @@
 """A shipped checkpoint's model card, generated from the runs' JSON.
 
-    python scripts/model_card.py NAME CKPT CROSSVAL_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/NAME.md
+    python scripts/model_card.py NAME CKPT CROSSVAL_JSON TRANSFER_JSON [RELEASE_LOG [SEARCH_JSON]] > checkpoints/NAME.md
     python scripts/model_card.py general6 CKPT LODO_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/general6.md
     python scripts/model_card.py NAME MODEL SEARCH_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/NAME.md
 
@@ -149,7 +149,21 @@ def search_card(name, model, search_json, tr_json, log=None):
     print("\n".join(out))
 
 
-def main(name, ckpt, cv_json, tr_json, log=None):
+def search_section(name, search_json):
+    """For a learned model the family search did not release but the project keeps: the search's
+    table and why it stays (compared on the same folds)."""
+    from results_tables import _search_summary
+
+    result = json.loads(Path(search_json).read_text())
+    rel = result["release"]
+    return ["", f"## The family search on {result['dataset']} ({result['axes']}-axis)", "",
+            f"The search's release is **{rel['chosen']}** ({rel['times_chosen']} of {rel['runs']} fold × seed runs). "
+            "This model is kept because on the same nested folds it is at or below that release (the project "
+            "never ships a result worse than one it already has; docs/results.md, \"What ships\").", "",
+            _search_summary(result)]
+
+
+def main(name, ckpt, cv_json, tr_json, log=None, search_json=None):
     if name.startswith("general"):
         return general(name, ckpt, cv_json, tr_json, log)
     if "release" in json.loads(Path(cv_json).read_text()):
@@ -187,10 +201,12 @@ def main(name, ckpt, cv_json, tr_json, log=None):
             "| data (split) | this checkpoint | best classical (AAE) | best inclination | never worse? |",
             "|---|---|---|---|---|"]
     out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
+    if search_json:
+        out += search_section(name, search_json)
     print("\n".join(out))
 
 
 if __name__ == "__main__":
-    if len(sys.argv) not in (5, 6):
+    if len(sys.argv) not in (5, 6, 7):
         sys.exit(__doc__)
     main(*sys.argv[1:])
