@@ -109,11 +109,13 @@ def transfer_summary(result: Mapping[str, Any]) -> str:
                 n += 1
                 tally[kind][0] += bool(c["never_worse"])
                 tally[kind][1] += 1
-        lines.append(f"| {label} ({row['axes']}-axis) | " + " | ".join(cells) + f" | {ok} of {n} |")
+        family = f", {row['family']}" if row.get("family") else ""
+        lines.append(f"| {label} ({row['axes']}-axis{family}) | " + " | ".join(cells) + f" | {ok} of {n} |")
     baselines = ", ".join(str(b) for b in result.get("baselines", []))
     own_ok, own_n = tally["own"]
     other_ok, other_n = tally["other"]
-    lines += ["", f"Mean AAE (inclination) in degrees, learned vs the best classical filter on the same "
+    lines += ["", f"Mean AAE (inclination) in degrees, the shipped model (its family in the first column: a "
+                  f"learned model, or a classical filter the family search chose) vs the best classical filter on the same "
                   f"recordings (lowest mean AAE of {baselines}; in brackets the lowest inclination of any of "
                   f"them); ✓ = never worse in both. *Italics*: the checkpoint's own dataset, its test split "
                   f"(training never saw it); other cells: datasets it never saw, all their training "

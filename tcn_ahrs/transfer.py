@@ -71,9 +71,13 @@ def shipped_meta(path: str) -> Dict[str, Any]:
     checkpoint or a classical estimator file written by ``tcn-ahrs search``."""
     if is_estimator_file(path):
         doc = read_estimator(path)
-        return {"axes": int(doc["axes"]), "data": str((doc.get("provenance") or {}).get("dataset", ""))}
+        family = f"{doc['family']} ({'tuned' if doc.get('knobs') else 'defaults'}{', calibrated' if doc.get('calibration') else ''})"
+        return {"axes": int(doc["axes"]), "data": str((doc.get("provenance") or {}).get("dataset", "")),
+                "family": family}
     meta = checkpoint_meta(load_checkpoint(path), path)
-    return {"axes": int(meta["layout"]["axes"]), "data": str(meta.get("data", ""))}
+    loop = str(meta["model"].get("loop", "open"))
+    family = {"backbone": "learned residual", "closed": "learned closed loop"}.get(loop, "learned open loop")
+    return {"axes": int(meta["layout"]["axes"]), "data": str(meta.get("data", "")), "family": family}
 
 
 def shipped_paths(folder: Path = Path("checkpoints")) -> Dict[str, str]:
@@ -119,7 +123,7 @@ def transfer(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], baselin
         meta = shipped_meta(path)
         axes, own = meta["axes"], meta["data"]
         owns = own_datasets(own)
-        row: Dict[str, Any] = {"axes": axes, "trained_on": own}
+        row: Dict[str, Any] = {"axes": axes, "trained_on": own, "family": meta["family"]}
         for name, cfg in data_cfgs.items():
             if axes == 9 and int(cfg.get("axes", 9)) != 9:
                 continue  # no magnetometer there

@@ -41,3 +41,18 @@ def test_transfer_cell_on_the_simulator(tmp_path):
                                    and cell["learned"]["inclination_deg"] <= cell["best_inclination_deg"])
     md = (tmp_path / "out" / "transfer.md").read_text()
     assert "untrained (9-axis, broad)" in md and md == markdown(res)
+
+
+def test_the_matrix_names_each_shipped_models_family(tmp_path):
+    """A classical estimator file the search shipped and a learned checkpoint are both rows of the
+    matrix, each named by its family (what the README's summary prints)."""
+    from pathlib import Path
+
+    from tcn_ahrs.estimators.families import save_estimator
+    from tcn_ahrs.transfer import shipped_meta, shipped_paths
+
+    root = Path(__file__).resolve().parents[1] / "checkpoints"
+    save_estimator(tmp_path / "mine6.json", "ecf", 6, {"k_norm": 0.1, "a_min": 1.0}, None, {"dataset": "simulated"})
+    assert shipped_meta(str(tmp_path / "mine6.json")) == {"axes": 6, "data": "simulated", "family": "ecf (tuned)"}
+    assert shipped_meta(str(root / "broad9.ckpt"))["family"] == "learned residual"
+    assert set(shipped_paths(tmp_path)) == {"mine6"}
