@@ -116,8 +116,10 @@ def search_card(name, model, search_json, tr_json, log=None):
     data = Path(model).read_bytes()
     out = [f"# `{Path(model).name}` — model card\n",
            f"- **Chosen by** `tcn-ahrs search` on {result['dataset']} ({result['axes']}-axis): **{rel['chosen']}**, the "
-           f"candidate chosen most often over the nested outer folds and seeds ({rel['times_chosen']} of {rel['runs']} "
-           "fold × seed runs; ties to the simpler family), refitted on every training recording."]
+           f"candidate chosen on the most outer folds (each fold chooses once over its seeds; {rel['times_chosen']} of "
+           f"{rel['runs']} fold × seed runs; a tie is read on the inner validation, then goes to the simpler family), "
+           "refitted on every training recording.",
+           f"- **Size / sha256**: {len(data) / 1024:.1f} KiB, `{hashlib.sha256(data).hexdigest()}`"]
     if is_estimator_file(model):
         doc = read_estimator(model)
         cal = doc.get("calibration")
@@ -139,8 +141,10 @@ def search_card(name, model, search_json, tr_json, log=None):
         out += ["", "```bash", f"tcn-ahrs train experiment={name}_cl train.all_recordings=true run_dir=runs/release/{name}_cl",
                 f"python scripts/release_checkpoint.py runs/release/{name}_cl/checkpoints/last.ckpt checkpoints/{name}.ckpt",
                 "```"]
-    out += [f"- **Size / sha256**: {len(data) / 1e6:.3f} MB, `{hashlib.sha256(data).hexdigest()}`", "",
-            "## Nested outer folds over seeds (the search; degrees, the yardstick of docs/conventions.md)", "",
+    out += ["", "**Limits**: chosen for this dataset's device. On other devices it is not never worse (the transfer "
+            "table below): a tuned filter's knobs and a learned model's bias prior belong to their IMU; a recording at "
+            "another rate runs a learned model as the backbone with VQF's defaults, one at the same rate does not.",
+            "", "## Nested outer folds over seeds (the search; degrees, the yardstick of docs/conventions.md)", "",
             _search_summary(result),
             "## Recordings it never saw (`python scripts/benchmark.py transfer`)", "",
             "| data (split) | this model | best classical (AAE) | best inclination | never worse? |",

@@ -159,10 +159,39 @@ def _search_summary(result: Mapping[str, Any]) -> str:
 
 SEARCHES = tuple(p.stem[len("search_"):] for p in sorted((REPO / "docs/results/json").glob("search_*.json")))
 
+
+def shipped_summary(result: Mapping[str, Any]) -> str:
+    """The README's table of what ships per dataset: each shipped model of the transfer matrix
+    that belongs to one dataset, its family, and that dataset's family search (its release, the
+    mean over outer folds and seeds beside the best classical filter with its defaults, never
+    worse over fold × seed runs) from ``docs/results/json/search_<dataset>[6].json``."""
+    import numpy as np
+
+    lines = ["| file | family | the search's release | search, mean AAE over folds × seeds (best classical, "
+             "defaults) | never worse |", "|---|---|---|---|---|"]
+    for label, row in result["matrix"].items():
+        data, axes = str(row.get("trained_on", "")), int(row["axes"])
+        found = [REPO / "docs/results/json" / f"search_{data}{suffix}.json" for suffix in ("", str(axes))]
+        found = [f for f in found if f.is_file() and int(json.loads(f.read_text())["axes"]) == axes]
+        if not found or label.endswith("_small"):
+            continue
+        srch = json.loads(found[0].read_text())
+        rows = srch["rows"]
+        ext = ".ckpt" if str(row.get("family", "")).startswith("learned") else ".json"
+        lines.append(f"| `checkpoints/{label}{ext}` | {row.get('family', '?')} | {srch['release']['chosen']} | "
+                     f"{np.mean([r['aae_deg'] for r in rows]):.2f} ({np.mean([r['best_classical_aae_deg'] for r in rows]):.2f}) | "
+                     f"{sum(r['never_worse'] for r in rows)} of {len(rows)} |")
+    lines += ["", "Degrees, the yardstick ([docs/conventions.md](docs/conventions.md)); every fold's table with its "
+                  "command: [docs/results.md](docs/results.md#the-yardstick-and-the-family-search-2026-12-05). Where "
+                  "the file's family is not the release, the project kept an earlier model that is at or below the "
+                  "release on the same folds."]
+    return "\n".join(lines) + "\n"
+
 BLOCKS: Dict[str, Block] = {
     **{f"search_{d}": Block(f"docs/results/json/search_{d}.json", _search_summary, ("docs/results.md",))
        for d in SEARCHES},
     "transfer_summary": Block(TRANSFER_JSON, transfer_summary, ("README.md",)),
+    "shipped": Block(TRANSFER_JSON, shipped_summary, ("README.md",)),
     "transfer_matrix": Block(TRANSFER_JSON, transfer_matrix, ("docs/results.md",)),
     "deploy": Block(DEPLOY_JSON, lambda result: _deploy_markdown(result), ("docs/deployment.md",)),
 }
