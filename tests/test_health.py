@@ -85,12 +85,21 @@ def test_the_c_runtime_flags_a_frozen_gyro(tmp_path):
     frozen = (flags & 16) > 0
     assert frozen[k0 + int(0.1 * rate) + 1:k1].all() and not frozen[:k0].any() and not frozen[k1 + 1:].any()
     assert not (flags & 32).any()
+    # the same runtime on a gyro clipped at ±150 °/s flags it (64)
+    lim = np.radians(150.0)
+    fast = simulate("fast_rotation", 30.0, rate, seed=1, device_seed=2, **CLEAN_MAG)
+    imu = np.concatenate([np.clip(fast.gyro, -lim, lim), fast.accel, fast.mag], 1).astype(np.float32)
+    rt.reset(fast.quat[0])
+    flags = np.array([rt.step(imu[k], 1.0 / rate)[4] for k in range(imu.shape[0])])
+    stuck = (np.abs(imu[:, :3]) >= np.float32(lim)).any(1)
+    clipped = (flags & 64) > 0
+    assert stuck.sum() > 50 and not (clipped & ~stuck).any() and clipped[stuck].mean() > 0.6
 
 
 @pytest.mark.parametrize("dataset", ["broad", "euroc", "tumvi", "oxiod"])
 def test_real_recordings_raise_no_frozen_flag(dataset):
     """The longest exact repeat of all three readings in the four datasets is 5 samples (BROAD);
-    the check needs 10 samples and 0.1 s."""
+    the check needs 10 samples and 0.1 s. Nothing there saturates either."""
     from omegaconf import OmegaConf
 
     from tcn_ahrs.config import conf_path
@@ -103,3 +112,34 @@ def test_real_recordings_raise_no_frozen_flag(dataset):
     for seq in load_split(cfg, "trainval")[:3]:
         out = bb.run(seq.gyro, seq.accel, seq.mag, seq.dt, bb.BackboneParams(), q0=np.array([1.0, 0, 0, 0]))
         assert not out["gyro_frozen"].any() and not out["acc_frozen"].any(), seq.name
+        assert not out["gyro_clipped"].any() and not out["acc_clipped"].any(), seq.name
+
+
+def test_a_clipped_gyro_is_flagged_without_ground_truth():
+    """A gyro clipped at ±250 °/s (the loader names it only with ground truth): flagged on the
+    samples it sticks at its extreme, nowhere else, in the batch filter and the C runtime."""
+    seq = simulate("fast_rotation", 30.0, RATE, seed=1, device_seed=2, **CLEAN_MAG)
+    lim = np.radians(250.0)
+    f = copy.deepcopy(seq)
+    f.gyro = np.clip(f.gyro, -lim, lim)
+    stuck = (np.abs(f.gyro) >= lim).any(1)
+    out = bb.run(f.gyro, f.accel, f.mag, f.dt, bb.BackboneParams(), q0=f.quat[0])
+    flag = out["gyro_clipped"]
+    # from the 5th sample of each stuck run on (a quantised smooth peak repeats once or twice)
+    assert stuck.sum() > 100 and not (flag & ~stuck).any() and flag[stuck].mean() > 0.6
+    assert not bb.run(seq.gyro, seq.accel, seq.mag, seq.dt, bb.BackboneParams(), q0=seq.quat[0])["gyro_clipped"].any()
+
+
+def test_a_clipped_accelerometer_is_flagged_and_not_trusted():
+    seq = simulate("fast_rotation", 30.0, RATE, seed=1, device_seed=2, **CLEAN_MAG)
+    lim = 11.0  # m/s^2: a range this motion exceeds (the floor lowered to match)
+    f = copy.deepcopy(seq)
+    f.accel = np.clip(f.accel, -lim, lim)
+    stuck = (np.abs(f.accel) >= lim).any(1)
+    params = bb.BackboneParams(acc_clip_floor=10.0)
+    out = bb.run(f.gyro, f.accel, f.mag, f.dt, params, q0=f.quat[0])
+    flag = out["acc_clipped"]
+    assert stuck.sum() > 20 and not (flag & ~stuck).any() and flag[stuck].mean() > 0.3
+    # not trusting the clipped readings costs nothing measurable here (1.293 vs 1.290 deg)
+    trusting = bb.run(f.gyro, f.accel, f.mag, f.dt, bb.BackboneParams(acc_clip_floor=0.0), q0=f.quat[0])
+    assert _inclination(out["quat"], f.quat).mean() <= _inclination(trusting["quat"], f.quat).mean() + 0.05

@@ -43,7 +43,8 @@ from .backbone_layout import (  # noqa: F401 (the layout, read by the step as co
     S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T, S_MCAND_N, S_MCAND_D, S_MCAND_T, F_ACC, F_ROT, F_BIAS, F_RG,
     F_RA, F_MAG, C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B, C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V,
     C_WM, C_WV, C_WR, DEG, EPS, initial_state, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, S_APREV, S_ASAME_T,
-    S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES)
+    S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES, S_GMAX, S_GCLIPPED, S_AMAX, S_ACLIPPED, P_GCLIP_FLOOR,
+    P_ACLIP_FLOOR, CLIP_MIN_REPEATS)
 from . import quat as _quat
 from .ops import float_ops
 
@@ -98,13 +99,10 @@ def coefficients(p, ts, c):
 # A group of d components at s[f]: [running, count, x1 (d), x2 (d), y1 (d), y2 (d)]. During the
 # first tau seconds the output is the mean of the samples so far (x1 holds the sum); at
 # count·ts ≥ tau the filter starts from that mean in steady state (VQF's filterVec).
-# Direct form I: the filter's memory is its last two inputs and outputs, which mean the same
-# whatever the coefficients, so a time step that changes from sample to sample (new
-# coefficients each step) continues the same signal. The transposed direct form II that VQF
-# uses keeps coefficient-dependent states that jump when the coefficients change: on ±30 %
-# timestamp jitter the field's filtered norm and dip jumped enough to flag 100 % of samples as
-# magnetically disturbed (69 % on the same motion sampled evenly). With a fixed step both forms
-# compute the same difference equation (equal to vqf to round-off).
+# Direct form I: the memory is the last two inputs and outputs, which mean the same whatever the
+# coefficients, so a step that changes every sample continues the same signal; VQF's transposed
+# form II keeps coefficient-dependent states that jump (±30 % timestamp jitter flagged 100 % of
+# samples magnetically disturbed, 69 % evenly). With a fixed step both are one difference equation.
 @jit
 def lp_begin(s, f, tau, ts):
     run = s[f] > 0.5
@@ -160,13 +158,31 @@ def quat9(s):
 
 # ------------------------------------------------------------------ gyroscope
 @jit
-def frozen_check(s, p, ts, prev, same_t, same_n, flag, x, y, z):
+def clip_axis(s, maxabs, prev, floor, v):
+    """Whether one axis read its largest magnitude so far (above ``floor``) :data:`CLIP_MIN_REPEATS`
+    times in a row: a saturated axis (run length kept at ``maxabs + 3``)."""
+    a = fabs(v)
+    at_max = both(a >= s[maxabs], both(floor > 0.0, a >= floor))
+    s[maxabs] = fmax(s[maxabs], a)
+    run = where(both(at_max, v == s[prev]), s[maxabs + 3] + 1.0, 0.0 * a)
+    s[maxabs + 3] = run
+    return run >= CLIP_MIN_REPEATS
+
+@jit
+def frozen_check(s, p, ts, prev, same_t, same_n, flag, maxabs, clipflag, floor, x, y, z):
     """Sensor health without ground truth: whether a sensor's three readings have repeated
     exactly (bit for bit) for ``frozen_time`` and :data:`FROZEN_MIN_SAMPLES` samples — a frozen
     or disconnected sensor; its noise makes a real one change. Kept in the state at ``prev``
-    (last reading), ``same_t``/``same_n`` (how long it repeated), ``flag``; returns the flag."""
+    (last reading), ``same_t``/``same_n`` (how long it repeated), ``flag``; returns the flag.
+    Also sets ``clipflag`` where an axis repeats its largest magnitude so far (above ``floor``)
+    while another axis changes — a saturated axis, not a duplicated sample."""
     x_, y_, z_ = nograd(x), nograd(y), nograd(z)
     same = both(x_ == s[prev], both(y_ == s[prev + 1], z_ == s[prev + 2]))
+    c0 = clip_axis(s, maxabs, prev, floor, x_)
+    c1 = clip_axis(s, maxabs + 1, prev + 1, floor, y_)
+    c2 = clip_axis(s, maxabs + 2, prev + 2, floor, z_)
+    clipped = both(negate(same), either(c0, either(c1, c2)))
+    s[clipflag] = where(clipped, 1.0 + 0.0 * x_, 0.0 * x_)
     t = where(same, s[same_t] + ts, 0.0 * x_)
     n = where(same, s[same_n] + 1.0, 0.0 * x_)
     frozen = both(p[P_FROZEN_T] > 0.0, both(t >= p[P_FROZEN_T], n >= FROZEN_MIN_SAMPLES))
@@ -178,9 +194,9 @@ def frozen_check(s, p, ts, prev, same_t, same_n, flag, x, y, z):
 @jit
 def gyro_update(s, p, c, gx, gy, gz):
     ts = c[C_TS]
-    # a frozen gyro is not integrated (the attitude holds), and is not rest: the bias must not
-    # converge to its stuck reading
-    frozen = frozen_check(s, p, ts, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, gx, gy, gz)
+    # a frozen gyro is not integrated (the attitude holds) and is not rest (no bias from it)
+    frozen = frozen_check(s, p, ts, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, S_GMAX, S_GCLIPPED,
+                          p[P_GCLIP_FLOOR], gx, gy, gz)
     if p[P_REST_BIAS] > 0.5 or p[P_MAG_REJ] > 0.5:
         # rest detection, gyro part: deviation from the low-passed rate (decisions only)
         l0, l1, l2 = lp3(s, c, F_RG, nograd(gx), nograd(gy), nograd(gz), C_REST_B, C_REST_A, p[P_REST_TAU], ts)
@@ -214,8 +230,10 @@ def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
     ts = c[C_TS]
     # a frozen accelerometer is not trusted: no inclination correction, no bias update from it,
     # no rest
-    frozen = frozen_check(s, p, ts, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, ax, ay, az)
-    acc_trust = where(frozen, 0.0 * acc_trust, acc_trust)
+    frozen = frozen_check(s, p, ts, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, S_AMAX, S_ACLIPPED,
+                          p[P_ACLIP_FLOOR], ax, ay, az)
+    # a frozen or clipped accelerometer is not trusted (a clipped one reads less than the force)
+    acc_trust = where(either(frozen, s[S_ACLIPPED] > 0.5), 0.0 * acc_trust, acc_trust)
     # nor is the bias learnt while either sensor is frozen: the inclination drift of a held gyro
     # would be read as bias and carried past the fault
     bias_trust = where(either(frozen, s[S_GFROZEN] > 0.5), 0.0 * bias_trust, bias_trust)

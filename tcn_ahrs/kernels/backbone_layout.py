@@ -50,6 +50,10 @@ class BackboneParams:
     # improbable (the longest repeat in BROAD, EuRoC, TUM VI and OxIOD: 5 samples, 17 ms) — and is
     # then neither integrated (gyro) nor trusted (accelerometer); 0 switches the check off
     frozen_time: float = 0.1             # s
+    # a reading that repeats its axis's largest magnitude so far, above these, while another axis
+    # changes, is clipped (a saturated sensor; a clipped accelerometer is not trusted); 0: off
+    gyro_clip_floor: float = 2.0         # rad/s (the smallest common range, ±125 °/s, is 2.18)
+    acc_clip_floor: float = 19.0         # m/s² (the smallest common range, ±2 g, is 19.6)
 
     def vector(self) -> Tuple[float, ...]:
         return tuple(float(v) for v in astuple(self))
@@ -83,7 +87,9 @@ STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("
                  ("mag_ref_norm", 1), ("mag_ref_dip", 1), ("mag_undisturbed_time", 1),
                  ("mag_reject_time", 1), ("mag_cand_norm", 1), ("mag_cand_dip", 1), ("mag_cand_time", 1),
                  ("gyr_prev", 3), ("gyr_same_time", 1), ("gyr_same_count", 1), ("gyr_frozen", 1),
-                 ("acc_prev", 3), ("acc_same_time", 1), ("acc_same_count", 1), ("acc_frozen", 1)]
+                 ("acc_prev", 3), ("acc_same_time", 1), ("acc_same_count", 1), ("acc_frozen", 1),
+                 ("gyr_max_abs", 3), ("gyr_clip_run", 3), ("gyr_clipped", 1), ("acc_max_abs", 3), ("acc_clip_run", 3),
+                 ("acc_clipped", 1)]
                 + [(n, 2 + 4 * d) for n, d in _FILTERS])
 COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
                  ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
@@ -118,6 +124,10 @@ S_MCAND_N, S_MCAND_D, S_MCAND_T = _S["mag_cand_norm"], _S["mag_cand_dip"], _S["m
 S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN = _S["gyr_prev"], _S["gyr_same_time"], _S["gyr_same_count"], _S["gyr_frozen"]
 S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN = _S["acc_prev"], _S["acc_same_time"], _S["acc_same_count"], _S["acc_frozen"]
 P_FROZEN_T = _P["frozen_time"]
+S_GMAX, S_GCLIPPED, S_AMAX, S_ACLIPPED = _S["gyr_max_abs"], _S["gyr_clipped"], _S["acc_max_abs"], _S["acc_clipped"]
+P_GCLIP_FLOOR, P_ACLIP_FLOOR = _P["gyro_clip_floor"], _P["acc_clip_floor"]
+CLIP_MIN_REPEATS = 4.0  # an axis at its extreme this many times in a row (a smooth, quantised peak
+# repeats its value once or twice: BROAD's gyro did at 2.9 rad/s)
 FROZEN_MIN_SAMPLES = 10.0  # and at least this many repeated samples (a slow IMU's 0.1 s is few)
 F_ACC, F_ROT, F_BIAS, F_RG, F_RA, F_MAG = (_S["acc_lp"], _S["rot_lp"], _S["bias_lp"], _S["rest_gyro_lp"],
                                            _S["rest_acc_lp"], _S["mag_lp"])

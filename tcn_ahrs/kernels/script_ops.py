@@ -20,7 +20,8 @@ from typing import Dict
 
 # the parameter names of the kernels by type (a kernel's parameter list is its contract)
 VECTORS = frozenset({"s", "p", "c"})          # state, parameters, coefficients: List[float]
-INTS = frozenset({"f", "d", "i", "at_b", "at_a", "prev", "same_t", "same_n", "flag"})  # flat indices and counts
+# flat indices and counts
+INTS = frozenset({"f", "d", "i", "at_b", "at_a", "prev", "same_t", "same_n", "flag", "maxabs", "clipflag"})
 BOOLS = frozenset({"run", "start"})
 # modules of typed scalar kernels (annotated for TorchScript) an ops-table kernel may bind
 TYPED_MODULES = frozenset({"tcn_ahrs.kernels.quat"})
