@@ -106,17 +106,9 @@ def test_own_device_command_on_generic_recordings(tmp_path, capsys):
     written, its chosen column's numbers the runner's."""
     import json
 
-    import h5py
-
     from tcn_ahrs.cli import main
 
-    root = tmp_path / "mine"
-    root.mkdir()
-    for i, prof in enumerate(["walking", "slow_rotation", "fast_rotation"]):
-        s = simulate(prof, 15.0, 100.0, seed=i, device_seed=3)
-        with h5py.File(root / f"rec{i}.h5", "w") as f:
-            for key, val in (("t", s.time), ("gyr", s.gyro), ("acc", s.accel), ("mag", s.mag), ("quat", s.quat)):
-                f[key] = val
+    root = _generic_root(tmp_path)
     out = tmp_path / "search"
     main(["search", "data=generic", f"data.root={root}", "search.trials=2", "search.seeds=[0]",
           "search.families=[strapdown,madgwick]", "search.calibrations=[none,gyro_bias]", f"search.out={out}",
