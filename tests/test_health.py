@@ -143,3 +143,27 @@ def test_a_clipped_accelerometer_is_flagged_and_not_trusted():
     # not trusting the clipped readings costs nothing measurable here (1.293 vs 1.290 deg)
     trusting = bb.run(f.gyro, f.accel, f.mag, f.dt, bb.BackboneParams(acc_clip_floor=0.0), q0=f.quat[0])
     assert _inclination(out["quat"], f.quat).mean() <= _inclination(trusting["quat"], f.quat).mean() + 0.05
+
+
+def test_the_onnx_streaming_step_reports_the_flags(tmp_path):
+    """The exported step graph returns its state; the metadata names where the flags lie in it
+    (``state.flags``), and the streaming wrapper reads them: a frozen gyro is flagged."""
+    pytest.importorskip("onnxruntime")
+    from tcn_ahrs.export.onnx_step import OnnxStreaming, export_onnx
+
+    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "broad9.ckpt"
+    paths = export_onnx(ckpt, tmp_path / "m.onnx", mode="streaming")
+    rt = OnnxStreaming(paths["streaming"])
+    assert set(rt.metadata["state"]["flags"]) >= {"gyro_frozen", "acc_frozen", "gyro_clipped", "acc_clipped"}
+    rate = 285.71
+    seq = simulate("walking", 8.0, rate, seed=1, device_seed=2, **CLEAN_MAG)
+    imu = np.concatenate([seq.gyro, seq.accel, seq.mag], 1)
+    k0, k1 = int(3 * rate), int(6 * rate)
+    imu[k0:k1, :3] = imu[k0, :3]
+    rt.reset(seq.quat[0])
+    frozen = []
+    for k in range(imu.shape[0]):
+        rt.step(imu[k], 1.0 / rate)
+        frozen.append(rt.flags()["gyro_frozen"])
+    frozen = np.array(frozen)
+    assert frozen[k0 + int(0.1 * rate) + 1:k1].all() and not frozen[:k0].any() and not frozen[k1 + 1:].any()

@@ -242,9 +242,17 @@ def state_spec(step: ResidualStep) -> Dict[str, object]:
     every row of ``ring0`` = the input mean the first layer's weights subtract), so that a loader
     without torch builds the state of ``reset(q0)``."""
     row = step.input_mean.to(step.net_dtype).to(F64).tolist()
+    base = int(step.layout["backbone"][0])
     return {"size": int(step.state_size), "dtype": "float64",
             "layout": {k: [int(o), [int(v) for v in s]] for k, (o, s) in step.layout.items()},
-            "init": {"m_conj": [1.0, 0.0, 0.0, 0.0], "ring0_row": [float(v) for v in row]}}
+            "init": {"m_conj": [1.0, 0.0, 0.0, 0.0], "ring0_row": [float(v) for v in row]},
+            # the backbone's flags after a step, as indices into the state it returns (> 0.5: set)
+            "flags": {name: base + int(idx) for name, idx in STATE_FLAGS.items()}}
+
+
+STATE_FLAGS = {"rest": K.S_REST, "mag_disturbed": K.S_MAGDIST, "gyro_frozen": K.S_GFROZEN,
+               "acc_frozen": K.S_AFROZEN, "gyro_clipped": K.S_GCLIPPED, "acc_clipped": K.S_ACLIPPED}
+"""The backbone's flags (sensor health among them) and where its state holds them."""
 
 
 def initial_state(spec: Dict, q0):
@@ -302,6 +310,12 @@ class StatefulLoop:
         x = one_sample(self, sample, dt)
         q, w, self.state = self._run_graph(x[0], float(self._dt1[0]), self.state)
         return q, w
+
+    def flags(self) -> Dict[str, bool]:
+        """The backbone's flags after the last step (rest, mag_disturbed, gyro/acc frozen and
+        clipped), read from the state the graph returned (metadata ``state.flags``: the indices,
+        for a loader without this package)."""
+        return {name: bool(self.state[idx] > 0.5) for name, idx in (self.spec.get("flags") or {}).items()}
 
     def step_chunk(self, samples, dt):
         """k samples (k, C), dt float or (k,) -> (quat (k, 4), omega (k, 3)): k steps."""
