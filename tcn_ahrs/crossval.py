@@ -65,10 +65,10 @@ def inner_split(cfg: DictConfig, folds: List[list], i: int, fcfg: DictConfig) ->
 
 def release_knobs(fold_knobs: List[List[dict]]) -> Dict[str, Any]:
     """The residual knobs for a released model: each point's criterion (worse ratio to the tuned
-    backbone, :func:`tcn_ahrs.tuning.select_residual_knobs`) averaged over the folds' inner
+    backbone, :func:`tcn_ahrs.knobs.select_residual_knobs`) averaged over the folds' inner
     validation tables; the lowest wins if it beats the tuned backbone (the tables' reference point,
-    criterion 1) by the selection's margin (:data:`tcn_ahrs.tuning.RESIDUAL_KNOB_MARGIN`)."""
-    from .tuning import RESIDUAL_KNOB_MARGIN
+    criterion 1) by the selection's margin (:data:`tcn_ahrs.knobs.RESIDUAL_KNOB_MARGIN`)."""
+    from .knobs import RESIDUAL_KNOB_MARGIN
 
     scores: Dict[tuple, List[float]] = {}
     reference = None

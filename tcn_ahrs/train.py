@@ -115,7 +115,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     if supervision == "self":
         dm.val_seqs, dm.val_store = [], None  # nothing to validate against without ground truth
     if probe.backbone is not None and cfg.train.get("tune_backbone", _T.tune_backbone) and supervision == "gt":
-        from .tuning import tune_backbone
+        from .knobs import tune_backbone
 
         # the backbone's knobs, chosen on the training recordings before any network trains
         # (never on the held-out ones); stored in the model config, so the checkpoint keeps them
@@ -158,7 +158,7 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
             print(f"gyro error term starts at the training recordings' mean gyro at rest: "
                   f"{[round(float(v), 5) for v in bias]} rad/s")
     if module.model.backbone is not None and cfg.train.get("init_gyro_bias", _T.init_gyro_bias):
-        from .tuning import backbone_bias
+        from .knobs import backbone_bias
 
         b0 = backbone_bias(dm.train_seqs, axes, (model_cfg.get("residual") or {}).get("backbone") or {})
         module.model.backbone.bias_init.copy_(torch.as_tensor(b0))

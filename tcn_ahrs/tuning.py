@@ -254,17 +254,3 @@ def tuning_clips(seqs: Sequence[ImuSequence], max_seconds: Optional[float] = 60.
                        "duration_s": round(c.duration, 3), "n_samples": len(c),
                        "n_scored": int(c.scored().sum())})
     return clips, record
-
-
-# A learned model's knobs (the backbone's parameters before training, the residual model's
-# inference knobs after it) are chosen in :mod:`tcn_ahrs.knobs`; its names stay importable from
-# here (loaded on first use: that module builds on this one).
-_KNOB_NAMES = frozenset({'BACKBONE_GRID', 'with_gyro_offsets', 'tune_backbone', 'backbone_bias', 'RESIDUAL_KNOB_GRID', 'RESIDUAL_KNOB_MARGIN', 'residual_knob_points', 'set_residual_knobs', 'knob_points_eligible', 'select_residual_knobs'})
-
-
-def __getattr__(name):
-    if name in _KNOB_NAMES:
-        from . import knobs
-
-        return getattr(knobs, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -95,7 +95,7 @@ def test_residual_model_chooses_its_knobs_on_the_inner_fold_and_can_choose_again
     import json
 
     from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint
-    from tcn_ahrs.tuning import residual_knob_points
+    from tcn_ahrs.knobs import residual_knob_points
 
     for i, prof in enumerate(["slow_rotation", "walking", "fast_rotation"]):
         _write(tmp_path / f"r{i}.csv", simulate(prof, 30.0, 50.0, seed=i))

@@ -221,7 +221,7 @@ def test_fine_tuning_starts_from_the_checkpoint_with_or_without_ground_truth(tmp
 
 
 def test_knobs_for_another_device_are_chosen_on_offset_copies_and_leave_the_recordings_alone():
-    from tcn_ahrs.tuning import with_gyro_offsets
+    from tcn_ahrs.knobs import with_gyro_offsets
 
     seqs = [_turning(), _turning(omega=(0.0, 0.2, 0.0))]
     before = [s.gyro.copy() for s in seqs]
@@ -252,7 +252,7 @@ def test_a_recording_resampled_for_the_rate_sweep_is_the_same_motion():
 
 
 def test_a_knob_point_may_win_on_one_number_only_under_the_either_rule():
-    from tcn_ahrs.tuning import knob_points_eligible
+    from tcn_ahrs.knobs import knob_points_eligible
 
     mean = np.array([[10.0, 1.0],    # the tuned backbone
                      [5.0, 1.0],     # AAE halved, inclination tied
@@ -272,7 +272,7 @@ def test_never_worse_knob_choice_is_scored_per_dataset_against_vqf_defaults():
     import copy
 
     from tcn_ahrs.datasets.simulate import simulate
-    from tcn_ahrs.tuning import tune_backbone
+    from tcn_ahrs.knobs import tune_backbone
 
     seqs = []
     for part, (profile, seed) in {"a": ("walking", 1), "b": ("slow_rotation", 2)}.items():

@@ -125,6 +125,70 @@ def test_navigation_and_reproductions_need_no_model():
     assert not bad, "nav/reproduce import above the filters:\n" + "\n".join(bad)
 
 
+# rooms that still import each other (function-local imports included): the debt named in the
+# "one house" issue — the streaming runtimes build on export's fused model while export's
+# stateless and C runtimes read streaming's input contract and network layout
+KNOWN_CYCLES = [{"export", "streaming"}]
+
+
+def _unit_graph():
+    edges = {}
+    for path in _sources():
+        unit = _unit(_module_name(path))
+        for _, target in _imports(path):
+            other = _unit(target)
+            if other != unit:
+                edges.setdefault(unit, set()).add(other)
+    return edges
+
+
+def _cycles(edges):
+    """The strongly connected components with more than one unit (Tarjan)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in edges.get(v, ()):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = set()
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.add(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(comp)
+
+    for v in list(edges):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycle_between_rooms():
+    """Units on one floor may import each other's code, but never in a circle (knobs ⇄ tuning was
+    one: tuning re-exported knobs' names, knobs built on tuning)."""
+    found = _cycles(_unit_graph())
+    new = [sorted(c) for c in found if c not in KNOWN_CYCLES]
+    gone = [sorted(c) for c in KNOWN_CYCLES if c not in found]
+    assert not new, f"import cycles between rooms: {new}"
+    assert not gone, f"cycle(s) {gone} no longer exist: remove them from KNOWN_CYCLES"
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [{"a", "b", "c"}]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
 def test_the_scan_sees_function_local_and_relative_imports():
     found = set(_imports(PACKAGE / "compare.py"))
     assert any(t == "tcn_ahrs.tuning" for _, t in found)        # `from .tuning import ...` inside a function

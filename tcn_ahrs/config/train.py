@@ -47,7 +47,7 @@ class TrainConfig:
     tune_backbone: bool = True    # model=residual: the backbone's knobs chosen on the training recordings
     tune_criterion: str = "aae"   # aae | never_worse
     select_knobs: bool = True     # model=residual: inference knobs chosen on the validation recordings
-    knob_grid: Optional[Dict[str, Any]] = None  # that choice's grid; null: tuning.RESIDUAL_KNOB_GRID
+    knob_grid: Optional[Dict[str, Any]] = None  # that choice's grid; null: knobs.RESIDUAL_KNOB_GRID
     knob_rule: str = "both"       # both | either
     all_recordings: bool = False  # train on every training recording, whole, nothing held out
     weight_decay: float = _num(0.1, 0.0)

@@ -20,15 +20,12 @@ except what :meth:`ResidualStep.initial_state` writes (``reset(q0)``)::
     ring0    (span0, C)        the first layer's ring buffer (raw samples; float32 values)
     ring<i>  (G, span_i, C_i)  hidden layer i's ring buffer (float32 values)
 
-The ring buffers are time-major and shifted by one row per sample (oldest row first), so the
-``kernel`` taps of the newest sample are rows ``0, d, 2d, ...``: the same weights and the same
-products as ``ResidualStreaming``'s phase-indexed rings, without a data-dependent index. The
-backbone's coefficients are recomputed from ``dt`` at every step (the TorchScript and numba
-runtimes cache them while dt repeats: the same numbers).
+The rings are time-major, shifted one row per sample (oldest first): the newest sample's taps are
+rows ``0, d, 2d, ...``, ``ResidualStreaming``'s products without a data-dependent index. The
+backbone's coefficients are recomputed from ``dt`` every step (the same numbers as the cached ones).
 
-ONNX Runtime has no float64 Tan, Atan or Asin kernel: :func:`onnx_ops` is the torch table with
-``tan = sin / cos`` and ``atan2`` as a float32 estimate refined by one float64 step (exact to
-float64 round-off), ``asin`` through it; the graph stays float64 outside the networks.
+ONNX Runtime has no float64 Tan, Atan or Asin: :func:`onnx_ops` uses ``tan = sin / cos`` and a
+float32 ``atan2`` refined by one float64 step (``asin`` through it); float64 outside the networks.
 """
 from __future__ import annotations
 
@@ -237,22 +234,19 @@ class ResidualScan(nn.Module):
 
 # ============================================================== the state between calls
 def state_spec(step: ResidualStep) -> Dict[str, object]:
-    """The state's description for the metadata (JSON): its size, its layout (name -> [offset,
-    shape]) and what :meth:`ResidualStep.initial_state` writes besides q0 (``m_conj`` = identity,
-    every row of ``ring0`` = the input mean the first layer's weights subtract), so that a loader
-    without torch builds the state of ``reset(q0)``."""
-    row = step.input_mean.to(step.net_dtype).to(F64).tolist()
-    base = int(step.layout["backbone"][0])
+    """The state's description for the metadata (JSON): size, layout (name -> [offset, shape]),
+    what ``reset(q0)`` writes besides q0 (``m_conj`` = identity, every ``ring0`` row = the input
+    mean), so a loader without torch builds it; ``flags``: the flags' indices in it."""
+    row, base = step.input_mean.to(step.net_dtype).to(F64).tolist(), int(step.layout["backbone"][0])
     return {"size": int(step.state_size), "dtype": "float64",
             "layout": {k: [int(o), [int(v) for v in s]] for k, (o, s) in step.layout.items()},
             "init": {"m_conj": [1.0, 0.0, 0.0, 0.0], "ring0_row": [float(v) for v in row]},
-            # the backbone's flags after a step, as indices into the state it returns (> 0.5: set)
-            "flags": {name: base + int(idx) for name, idx in STATE_FLAGS.items()}}
+            "flags": {name: base + int(idx) for name, idx in STATE_FLAGS.items()}}  # > 0.5: set
 
 
+# the backbone's flags (sensor health among them) and where its state holds them
 STATE_FLAGS = {"rest": K.S_REST, "mag_disturbed": K.S_MAGDIST, "gyro_frozen": K.S_GFROZEN,
                "acc_frozen": K.S_AFROZEN, "gyro_clipped": K.S_GCLIPPED, "acc_clipped": K.S_ACLIPPED}
-"""The backbone's flags (sensor health among them) and where its state holds them."""
 
 
 def initial_state(spec: Dict, q0):
@@ -312,9 +306,7 @@ class StatefulLoop:
         return q, w
 
     def flags(self) -> Dict[str, bool]:
-        """The backbone's flags after the last step (rest, mag_disturbed, gyro/acc frozen and
-        clipped), read from the state the graph returned (metadata ``state.flags``: the indices,
-        for a loader without this package)."""
+        """The backbone's flags after the last step, from the returned state (``state.flags``)."""
         return {name: bool(self.state[idx] > 0.5) for name, idx in (self.spec.get("flags") or {}).items()}
 
     def step_chunk(self, samples, dt):
