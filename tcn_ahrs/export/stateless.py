@@ -266,7 +266,7 @@ def initial_state(spec: Dict, q0):
 class StatefulLoop:
     """The streaming contract around a stateless step graph (ONNX or torch.export): the state
     lives here, in numpy, and the inputs are checked *before* the graph runs (a graph cannot
-    raise), so a refused sample leaves the state as it was (:mod:`tcn_ahrs.streaming.inputs`:
+    raise), so a refused sample leaves the state as it was (:mod:`tcn_ahrs.export.contract`:
     the same checks and messages as :class:`~tcn_ahrs.streaming.BackboneStreaming`).
 
     ``reset(q0)``; ``step(sample (C,), dt)`` -> quat (4,), omega (3,) float64 numpy (the dt of the
@@ -287,19 +287,19 @@ class StatefulLoop:
         self.reset(np.array([1.0, 0.0, 0.0, 0.0]))
 
     def _check(self, xs, dts) -> None:
-        from ..streaming.inputs import check_samples
+        from .contract import check_samples
 
         check_samples(xs, dts)
 
     def reset(self, q0) -> None:
         """Start a new recording at attitude q0 (w, x, y, z), nav_from_body, ENU."""
-        from ..streaming.inputs import check_quat0
+        from .contract import check_quat0
 
         self.state = initial_state(self.spec, check_quat0(q0).numpy())
 
     def step(self, sample, dt: float):
         """One sample (C,) -> (quat (4,), omega (3,)); ValueError before any state change."""
-        from ..streaming.inputs import one_sample
+        from .contract import one_sample
 
         x = one_sample(self, sample, dt)
         q, w, self.state = self._run_graph(x[0], float(self._dt1[0]), self.state)
@@ -313,7 +313,7 @@ class StatefulLoop:
         """k samples (k, C), dt float or (k,) -> (quat (k, 4), omega (k, 3)): k steps."""
         import numpy as np
 
-        from ..streaming.inputs import checked_chunk
+        from .contract import checked_chunk
 
         xs, dts = checked_chunk(self, samples, dt)
         quat, omega = np.empty((len(xs), 4)), np.empty((len(xs), 3))
@@ -328,7 +328,7 @@ class StatefulLoop:
         checked before the state is reset)."""
         import numpy as np
 
-        from ..streaming.inputs import checked_chunk, check_quat0
+        from .contract import checked_chunk, check_quat0
 
         xs, dts = checked_chunk(self, imu, dt)
         check_quat0(q0)
@@ -431,14 +431,14 @@ class CheckedBatch:
         self.axes = int(metadata["axes"])
 
     def _check(self, xs, dts) -> None:
-        from ..streaming.inputs import check_samples
+        from .contract import check_samples
 
         check_samples(xs, dts)
 
     def run(self, imu, dt, q0):
         import numpy as np
 
-        from ..streaming.inputs import checked_chunk, check_quat0
+        from .contract import checked_chunk, check_quat0
 
         xs, dts = checked_chunk(self, imu, dt)
         q = check_quat0(q0).numpy()

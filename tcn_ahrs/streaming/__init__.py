@@ -26,7 +26,7 @@ numba is optional (``[fast]``, in ``[dev]``): without it this class raises Impor
 Modules: :mod:`~tcn_ahrs.streaming.closed_loop` (:class:`CompiledStreaming`),
 :mod:`~tcn_ahrs.streaming.backbone` (:class:`BackboneStreaming`, the residual model),
 :mod:`~tcn_ahrs.streaming.networks` (the networks on ring buffers, shared by both) and
-:mod:`~tcn_ahrs.streaming.inputs` (the input checks both apply).
+:mod:`~tcn_ahrs.export.contract` (the input checks every runtime applies).
 """
 from .backbone import BackboneStreaming
 from .closed_loop import CompiledStreaming

@@ -8,7 +8,7 @@ from typing import Tuple, Union
 import numpy as np
 import torch
 
-from .inputs import check_samples, checked_chunk, one_sample, check_quat0
+from ..export.contract import check_samples, checked_chunk, one_sample, check_quat0
 from .networks import AVAILABLE, flat_networks, scripted_ring_convolutions
 
 if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportError when built)

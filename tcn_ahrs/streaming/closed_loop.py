@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from .backbone import BackboneStreaming
-from .inputs import check_samples, checked_chunk, one_sample, check_quat0
+from ..export.contract import check_samples, checked_chunk, one_sample, check_quat0
 from .networks import AVAILABLE, flat_networks, scripted_ring_convolutions
 
 if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportError when built)

@@ -6,10 +6,10 @@ What is generated and from where (nothing of the math restated by hand):
   quaternion kernels it binds) by :mod:`tcn_ahrs.export.c.translate`, as numba and TorchScript
   (:mod:`tcn_ahrs.kernels.script_ops`) compile that same source;
 * the networks are the folded float32 weights of :func:`~tcn_ahrs.export.fused.fuse_residual` in
-  the flat layout of :func:`tcn_ahrs.streaming.networks.flat_networks` (what
+  the flat layout of :func:`tcn_ahrs.export.flat.flat_networks` (what
   :class:`~tcn_ahrs.streaming.BackboneStreaming` runs), read by one generic ring-buffer dilated
   causal convolution (``model.c.in``); GELU as ``u (1 + erf(u))`` with the rational erf of
-  :func:`tcn_ahrs.streaming.networks.erf_rational` (its coefficients written in);
+  :func:`tcn_ahrs.export.flat.erf_rational` (its coefficients written in);
 * the per-sample composition (networks -> gyro residual and trusts -> backbone calls -> output)
   is the template ``model.c.in``, written once after ``_backbone_steps`` of :mod:`tcn_ahrs.streaming.backbone`
   (and ``ResidualStreaming._filter`` / ``_start``).

@@ -49,7 +49,7 @@ def _network_arrays(model: nn.Module):
     """The folded networks in BackboneStreaming's flat layout: (wts float32, head_w, head_b, ints)."""
     from ..fused import fuse_residual
     from ..open_loop import StreamingAHRS
-    from ...streaming.networks import flat_networks
+    from ..flat import flat_networks
 
     fused = fuse_residual(model)
     ts = StreamingAHRS(fused, {})
@@ -107,7 +107,7 @@ def _keep_networks(wts: np.ndarray, layers: List[List[int]], head_w: np.ndarray,
 def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     """The C runtime of a residual model (a :class:`~tcn_ahrs.model.ahrs.LearnedAHRS` with
     ``loop: backbone``): {"h": header text, "c": source text, "info": sizes}."""
-    from ...streaming.networks import ERF_P, ERF_Q, LAYOUT_HEADER, LAYOUT_PER_LAYER
+    from ..flat import ERF_P, ERF_Q, LAYOUT_HEADER, LAYOUT_PER_LAYER
 
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name or ""):
         raise ExportError(f"C export: name {name!r} is not a C identifier")

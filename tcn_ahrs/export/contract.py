@@ -1,6 +1,8 @@
-"""The input contract both streaming runtimes share: one sample or a chunk as checked float64
-arrays (finite, within the physical ranges, steps finite, > 0 and <= MAX_DT) and the start
-attitude, all checked before any state changes.
+"""The streaming input contract every runtime shares (the numba/TorchScript ones in
+:mod:`tcn_ahrs.streaming`, the ONNX / torch.export loops of :mod:`tcn_ahrs.export.stateless`): one
+sample or a chunk as checked float64 arrays (finite, within the physical ranges, steps finite,
+> 0 and <= MAX_DT) and the start attitude, all checked before any state changes. It lives in
+export, below the streaming runtimes that build on export's modules (no import cycle).
 """
 from __future__ import annotations
 
