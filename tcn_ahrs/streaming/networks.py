@@ -1,7 +1,8 @@
 """The networks of the streaming runtimes, per sample on ring buffers, compiled by numba: the
 folded TCNs (laid out as flat arrays by :func:`tcn_ahrs.export.flat.flat_networks`) and the
-head, shared by the closed loop (:mod:`tcn_ahrs.streaming.closed_loop`) and the residual model (:mod:`tcn_ahrs.streaming.backbone`); a chunk of samples runs as convolutions
-instead (:func:`scripted_ring_convolutions`), advancing the same ring buffers.
+head, shared by the closed loop (:mod:`tcn_ahrs.streaming.closed_loop`) and the residual model
+(:mod:`tcn_ahrs.streaming.backbone`); a chunk of samples runs as convolutions instead
+(:func:`scripted_ring_convolutions`), advancing the same ring buffers.
 """
 from __future__ import annotations
 
