@@ -48,8 +48,21 @@ def test_backbone_equals_vqf_package(name):
     """Cross-implementation test: VQF's defaults, VQF's start (identity), the recording's nominal
     period -> the vqf package's 6D and 9D attitude to <= 0.1 deg RMS (in fact to round-off), and its
     bias estimate, rest and disturbance flags."""
+    _assert_equals_vqf(*_real(name), name)
+
+
+@pytest.mark.parametrize("profile", ["walking", "fast_rotation", "static", "drone"])
+def test_backbone_equals_vqf_package_on_the_simulator(profile):
+    """The same cross-implementation test without ../shared: simulated recordings with a device's
+    noise, biases, hard iron and magnetic disturbances (rest, motion bias and rejection all run)."""
+    from tcn_ahrs.datasets.simulate import simulate
+
+    seq = simulate(profile, 60.0, 100.0, seed=3, device_seed=1)
+    _assert_equals_vqf(seq.gyro, seq.accel, seq.mag, 100.0, profile)
+
+
+def _assert_equals_vqf(gyr, acc, mag, rate, name):
     vqf = pytest.importorskip("vqf")
-    gyr, acc, mag, rate = _real(name)
     gyr, acc, mag = (np.ascontiguousarray(x, dtype=np.float64) for x in (gyr, acc, mag))
     ts = 1.0 / rate
     dt = np.full(len(gyr), ts)
