@@ -35,7 +35,6 @@ def dataset_axes(name: str) -> int | None:
 def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     """``scripts/evaluate.py``: the learned estimator + Raw IMU (+ ``baselines``) on
     ``load_split(data, data.split)``; writes results.json/.md, plots, TUM trajectories."""
-    from ..datasets import load_split
     from ..estimators.learned import LearnedEstimator
 
     check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
@@ -60,9 +59,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     if is_estimator_file(cfg.ckpt):  # a classical family chosen by tcn-ahrs search
         learned = load_estimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name))
         axes = min(axes, int(learned.axes or axes))
-        refused: list = []
-        seqs = [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt]
-        return _run(cfg, learned, seqs, axes, out, refused)
+        return _run(cfg, learned, *_recordings(cfg), axes, out)
     ck = load_checkpoint(cfg.ckpt)
     if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
         # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
@@ -70,15 +67,22 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
               "is scored as 6-axis (heading relative to the start)")
         axes = 6
     check_layout(ck, axes, cfg.ckpt, data_axes=dataset_axes(str(cfg.data.name)))
-    refused = []
-    seqs = [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt]
+    seqs, refused = _recordings(cfg)
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
                                other_rate=str(cfg.get("other_rate", _D.other_rate)))
-    return _run(cfg, learned, seqs, axes, out, refused)
+    return _run(cfg, learned, seqs, refused, axes, out)
 
 
-def _run(cfg: DictConfig, learned, seqs, axes: int, out: str, refused=()) -> Dict[str, Any]:
+def _recordings(cfg: DictConfig):
+    """(the split's recordings with ground truth, [(recording, reason)] of those its checks refused)."""
+    from ..datasets import load_split
+
+    refused: list = []
+    return [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt], refused
+
+
+def _run(cfg: DictConfig, learned, seqs, refused, axes: int, out: str) -> Dict[str, Any]:
     """The chosen estimator + Raw IMU (+ ``baselines``) through the runner, written to ``out``.
     Recordings the loader ``refused`` (name, reason) are listed on screen and in
     ``refused.txt``; the good ones are evaluated; then the command fails (exit status 2), so

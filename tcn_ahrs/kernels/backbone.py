@@ -228,11 +228,10 @@ def gyro_update(s, p, c, gx, gy, gz):
 @jit
 def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
     ts = c[C_TS]
-    # a frozen accelerometer is not trusted: no inclination correction, no bias update from it,
-    # no rest
     frozen = frozen_check(s, p, ts, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, S_AMAX, S_ACLIPPED,
                           p[P_ACLIP_FLOOR], ax, ay, az)
-    # a frozen or clipped accelerometer is not trusted (a clipped one reads less than the force)
+    # a frozen or clipped accelerometer is not trusted (no inclination correction, no rest; a
+    # clipped one reads less than the force)
     acc_trust = where(either(frozen, s[S_ACLIPPED] > 0.5), 0.0 * acc_trust, acc_trust)
     # nor is the bias learnt while either sensor is frozen: the inclination drift of a held gyro
     # would be read as bias and carried past the fault

@@ -23,8 +23,11 @@ For each outer fold ``i`` of ``data.folds`` (the recordings scored, which choose
    defaults, on the raw and on the calibrated signals — all with the one yardstick
    (:mod:`tcn_ahrs.metrics`).
 
-``search.seeds`` repeats steps 2–4 with other sampler seeds; the report gives mean and spread.
-Writes ``search.json`` and ``search.md``; the numbers are the runner's (:func:`tcn_ahrs.evaluate.evaluate`).
+``search.seeds`` repeats steps 2–4 with other sampler seeds, and the fold chooses once from the
+inner scores averaged over them (:func:`fold_choice`); the report gives mean and spread of the
+outer scores. Each fold × seed record is written to ``search.out/records/`` (resume; Hydra
+multirun jobs); the release is :func:`release_choice`. Writes ``search.json``, ``summary.json``
+and ``search.md``; the numbers are the runner's (:func:`tcn_ahrs.evaluate.evaluate`).
 """
 from __future__ import annotations
 
@@ -70,11 +73,12 @@ def search_main(cfg) -> Dict[str, Any]:
     if bad:
         raise ValueError(f"search.calibrations: unknown {bad}; expected some of {list(CALIBRATIONS)}")
     learned_spec = dict(OmegaConf.to_container(sc.learned, resolve=True) or {}) if sc.get("learned") else {}
-    lighter = skipped(OmegaConf.to_container(sc, resolve=True), len(folds))
+    settings = OmegaConf.to_container(sc, resolve=True)
+    lighter = skipped(settings, len(folds))
     print("search settings: " + ("; ".join(lighter) if lighter else "the full search (nothing skipped)"), flush=True)
     t_start = time.perf_counter()
     job = multirun_job()
-    recipe = {k: OmegaConf.to_container(sc, resolve=True).get(k) for k in RECIPE_KEYS}
+    recipe = {k: settings.get(k) for k in RECIPE_KEYS}
     recipe["folds"] = folds
     records: List[Dict[str, Any]] = []
     read_seconds = 0.0  # the compute time of records an earlier run or another job wrote
