@@ -7,6 +7,7 @@
     python scripts/benchmark.py transfer [transfer.ckpts={label: path}] [transfer.datasets=[broad,...]]
     python scripts/benchmark.py lodo [lodo.datasets=[broad,...]] [lodo.overrides=[train.epochs=20]]
     python scripts/benchmark.py finetune [finetune.k=2] [finetune.datasets=[tumvi]]
+    python scripts/benchmark.py faults [faults.seeds=[0,1,2]] [faults.ckpt=PATH]
 
 accuracy: every method incl. the PyPI peers on one dataset through the evaluation runner
           (tcn_ahrs.compare.benchmark_accuracy_main; same code as scripts/compare.py).
@@ -17,6 +18,8 @@ lodo:     tcn_ahrs.lodo.lodo_main(cfg): leave one dataset out: a general model t
           others (trained here unless present), scored on the left-out dataset.
 finetune: tcn_ahrs.finetune.finetune_main(cfg): those models fine-tuned on k recordings of the
           left-out dataset (with and without ground truth), scored on its other recordings.
+faults:   tcn_ahrs.bench.faults.faults_main(cfg): sensor faults injected into simulated recordings,
+          the backbone with and without its health checks beside VQF and the default model.
 Config: tcn_ahrs/conf/benchmark.yaml. Output: runs/benchmark/<mode>/<data>/<time> unless out=DIR.
 
 Same as ``tcn-ahrs benchmark ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/benchmark.py``.

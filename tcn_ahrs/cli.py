@@ -38,7 +38,7 @@ COMMANDS: Dict[str, Command] = {
     "compare": Command("compare", "tcn_ahrs.compare:compare_main",
                        "every classical filter (and a checkpoint) on one dataset"),
     "benchmark": Command("benchmark", "tcn_ahrs.cli:benchmark_main",
-                         "accuracy | speed | transfer | lodo | finetune"),
+                         "accuracy | speed | transfer | lodo | finetune | faults"),
     "crossval": Command("crossval", "tcn_ahrs.crossval:crossval_main",
                         "nested leave-recordings-out folds of a recipe"),
     "search": Command("search", "tcn_ahrs.search:search_main",
@@ -57,6 +57,7 @@ BENCHMARK_MODES = {
     "lodo": "tcn_ahrs.lodo:lodo_main",
     "finetune": "tcn_ahrs.finetune:finetune_main",
     "speed": "tcn_ahrs.bench:main",
+    "faults": "tcn_ahrs.bench.faults:faults_main",
 }
 
 

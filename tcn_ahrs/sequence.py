@@ -13,7 +13,7 @@ from typing import Optional
 import numpy as np
 
 from .agreement import EXCITED_RATE, axis_fit, ground_truth_agreement  # noqa: F401 (re-exported)
-from .conventions import GRAVITY, INPUT_RANGES
+from .conventions import GRAVITY, INPUT_RANGES, MAX_DT
 
 
 class DataError(ValueError):
@@ -185,12 +185,21 @@ class ImuSequence:
             self._fail("time", f"expected seconds; the median step is {step:.4g} s{said}, a {1.0 / step:.3g} Hz IMU: "
                                + (f"the timestamps look like {names[unit]}: declare time_unit: {unit}" if unit
                                   else "check the timestamps' unit"))
-        limit = max(MAX_GAP_STEPS * step, MAX_GAP_S)
-        if float(d.max()) > limit:
+        if float(d.max()) > MAX_DT:
             i = int(np.argmax(d))
             self._fail("time", f"a gap of {d[i]:.4g} s between samples {i} and {i + 1} (t = {self.time[i]:.6g} -> "
                                f"{self.time[i + 1]:.6g} s; median step {step:.3g} s): the attitude cannot be "
-                               f"integrated across missing data (limit {limit:.3g} s); split the recording there")
+                               f"integrated across missing data (limit {MAX_DT:g} s, the runtimes' longest step); "
+                               "split the recording there")
+        gaps = np.flatnonzero(d > max(MAX_GAP_STEPS * step, MAX_GAP_S))
+        if gaps.size:
+            import warnings
+
+            where_ = ", ".join(f"{d[i]:.3g} s at t = {self.time[i]:.6g} s" for i in gaps[:3])
+            warnings.warn(f"{self.source}: {gaps.size} gap(s) in the IMU stream ({where_}{', …' if gaps.size > 3 else ''}): "
+                          "the backbone runs across each (flagged `gap`; the gyro over it is the mean of the "
+                          "readings either side, the heading taken from the magnetometer again); samples were "
+                          "lost there", UserWarning, stacklevel=3)
 
     def _check_ground_truth(self) -> None:
         """Where ground truth exists, the gyro must agree with the rate differentiated from it and
@@ -363,7 +372,8 @@ class ImuSequence:
 
 MAX_MISALIGNMENT_DEG = 5.0  # real recordings fit 0.1-1.9 deg where all three axes turn (EuRoC, TUM VI)
 MAX_GAP_STEPS = 20.0  # a time step longer than this many median steps ...
-MAX_GAP_S = 0.2      # ... and than this many seconds is a gap in the data, not a late sample
+MAX_GAP_S = 0.2      # ... and than this many seconds is a gap in the data (warned), not a late sample;
+# one longer than conventions.MAX_DT (the runtimes' longest step) is refused
 
 
 def _rest_samples(accel: np.ndarray, rate: float, window_s: float = 0.5, tol: float = 0.05) -> np.ndarray:

@@ -89,15 +89,23 @@ class FinetuneSection:
 
 
 @dataclass
+class FaultsSection:
+    """benchmark ``faults:`` (tcn_ahrs.bench.faults)."""
+    seeds: List[int] = field(default_factory=lambda: [0, 1, 2])  # one simulated walk per seed
+    ckpt: Optional[str] = "checkpoints/general9.ckpt"             # the learned column (null: none)
+
+
+@dataclass
 class BenchmarkConfig(CompareConfig):
     """conf/benchmark.yaml: compare.yaml's keys + the modes' own (``speed:``: :mod:`.speed`)."""
-    mode: str = "accuracy"           # accuracy | speed | transfer | lodo | finetune
+    mode: str = "accuracy"           # accuracy | speed | transfer | lodo | finetune | faults
     peers: bool = True
     ckpt: Optional[str] = None       # a learned checkpoint, column ckpt_label
     ckpt_label: str = "Proposed"
     transfer: TransferSection = field(default_factory=TransferSection)
     lodo: LodoSection = field(default_factory=LodoSection)
     finetune: FinetuneSection = field(default_factory=FinetuneSection)
+    faults: FaultsSection = field(default_factory=FaultsSection)
     quick: bool = False              # speed mode only
     speed: Dict[str, Any] = field(default_factory=dict)  # checked by tcn_ahrs.bench.resolve_config
 

@@ -26,8 +26,8 @@ class Backbone(ClassicalEstimator):
     ``tau_mag`` s (heading), bias estimation at rest and in motion (``bias_clip`` °/s), magnetic
     disturbance rejection against the recording's own field; the fields are
     :class:`~tcn_ahrs.kernels.backbone.BackboneParams`'s, any other one through ``extra`` (a dict). Signals: ``gyro_bias`` (N, 3) rad/s, ``rest``,
-    ``mag_disturbed``, ``gyro_frozen``, ``acc_frozen``, ``gyro_clipped``, ``acc_clipped`` (N,) (sensor
-    health, no ground truth)."""
+    ``mag_disturbed``, ``gyro_frozen``, ``acc_frozen``, ``gyro_clipped``, ``acc_clipped``, ``gap`` (N,)
+    (sensor health, no ground truth)."""
 
     tau_acc: float = 3.0  # s
     tau_mag: float = 9.0  # s
@@ -52,7 +52,9 @@ class Backbone(ClassicalEstimator):
         g, a, d, q = (x.cpu().numpy() for x in (gyro, accel, dt, q0))
         m = None if mag is None else mag.cpu().numpy()
         extra = dict(p.get("extra") or {})
-        quat, bias, rest, dist, gfrozen, afrozen, gclip, aclip = [], [], [], [], [], [], [], []
+        health = ("gyro_frozen", "acc_frozen", "gyro_clipped", "acc_clipped", "gap")
+        quat, bias, rest, dist = [], [], [], []
+        flags = {k: [] for k in health}
         for k in range(n_sets * r):
             i = k % r
             params = bb.BackboneParams.from_mapping({**extra, **{n: float(v[k]) for n, v in vals.items()}})
@@ -61,15 +63,12 @@ class Backbone(ClassicalEstimator):
             bias.append(out["gyro_bias"])
             rest.append(out["rest"])
             dist.append(out["mag_disturbed"])
-            gfrozen.append(out["gyro_frozen"])
-            afrozen.append(out["acc_frozen"])
-            gclip.append(out["gyro_clipped"])
-            aclip.append(out["acc_clipped"])
+            for name in health:
+                flags[name].append(out[name])
         lead = (n_sets, r) if len(shape) == 2 else (r,)
         t = lambda xs: torch.as_tensor(np.stack(xs)).reshape(lead + xs[0].shape).to(gyro.device)  # noqa: E731
         res = {"quat": t(quat).to(gyro.dtype), "gyro_bias": t(bias).to(gyro.dtype), "rest": t(rest),
-               "gyro_frozen": t(gfrozen), "acc_frozen": t(afrozen), "gyro_clipped": t(gclip),
-               "acc_clipped": t(aclip)}
+               **{name: t(v) for name, v in flags.items()}}
         if m is not None:
             res["mag_disturbed"] = t(dist)
         return res

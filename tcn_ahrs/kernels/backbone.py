@@ -21,33 +21,28 @@ accelerometer trust τ_acc' that scales the inclination correction angle, the ma
 that scales k_mag, and the bias trust that scales each Kalman bias increment. Trust 0 in all three
 is plain strapdown integration with the bias frozen.
 
-Deliberate differences from ``vqf`` (tests/test_backbone.py holds the rest equal to it):
-* the time step may change from sample to sample (coefficients are recomputed for each new dt,
-  filter states kept); ``vqf`` takes one fixed period;
-* the inclination correction is written with the angle (atan2) so that it can be scaled; at
-  trust 1 it is ``vqf``'s correction to round-off;
-* the start may be a given attitude (q_gyr = q0, q_acc = 1, δ = 0) instead of the identity.
-
-State and coefficients are flat float vectors; their layouts are :data:`STATE` and :data:`COEFF`.
+Deliberate differences from ``vqf`` (tests/test_backbone.py holds the rest equal to it): the
+time step may change from sample to sample (coefficients recomputed, filter states kept); the
+inclination correction is written with its angle (atan2), to be scaled (trust 1: ``vqf``'s to
+round-off); the start may be a given attitude; the sensors' health is checked (frozen, clipped,
+gaps: ``BackboneParams``). State and coefficients are flat float vectors (:data:`STATE`, :data:`COEFF`).
 """
 from __future__ import annotations
 
 import math
 
 from .backbone_layout import (  # noqa: F401 (the layout, read by the step as constants; re-exported)
-    BackboneParams, PARAM, STATE, COEFF, N_STATE, N_COEFF, N_PARAM, P_TAU_ACC, P_TAU_MAG, P_MOTION_BIAS,
-    P_REST_BIAS, P_MAG_REJ, P_SIGMA_INIT, P_FORGET, P_CLIP, P_SIGMA_MOTION, P_VERT_FORGET, P_SIGMA_REST,
-    P_REST_MIN_T, P_REST_TAU, P_REST_TH_G, P_REST_TH_A, P_MAG_CUR_TAU, P_MAG_REF_TAU, P_MAG_NORM_TH,
-    P_MAG_DIP_TH, P_MAG_NEW_T, P_MAG_NEW_FIRST_T, P_MAG_NEW_MIN_G, P_MAG_MIN_UND_T, P_MAG_MAX_REJ_T,
-    P_MAG_REJ_FACTOR, S_GQ, S_AQ, S_DELTA, S_REST, S_MAGDIST, S_KMINIT, S_BIAS, S_P, S_REST_T, S_REST_G,
-    S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T, S_MCAND_N, S_MCAND_D, S_MCAND_T, F_ACC, F_ROT, F_BIAS, F_RG,
-    F_RA, F_MAG, C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B, C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V,
-    C_WM, C_WV, C_WR, DEG, EPS, initial_state, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, S_APREV, S_ASAME_T,
-    S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES, S_GMAX, S_GCLIPPED, S_AMAX, S_ACLIPPED, P_GCLIP_FLOOR,
-    P_ACLIP_FLOOR, CLIP_MIN_REPEATS)
+    BackboneParams, PARAM, STATE, COEFF, N_STATE, N_COEFF, N_PARAM, P_TAU_ACC, P_TAU_MAG, P_MOTION_BIAS, P_REST_BIAS,
+    P_MAG_REJ, P_SIGMA_INIT, P_FORGET, P_CLIP, P_SIGMA_MOTION, P_VERT_FORGET, P_SIGMA_REST, P_REST_MIN_T, P_REST_TAU,
+    P_REST_TH_G, P_REST_TH_A, P_MAG_CUR_TAU, P_MAG_REF_TAU, P_MAG_NORM_TH, P_MAG_DIP_TH, P_MAG_NEW_T,
+    P_MAG_NEW_FIRST_T, P_MAG_NEW_MIN_G, P_MAG_MIN_UND_T, P_MAG_MAX_REJ_T, P_MAG_REJ_FACTOR, S_GQ, S_AQ, S_DELTA,
+    S_REST, S_MAGDIST, S_KMINIT, S_BIAS, S_P, S_REST_T, S_REST_G, S_MREF_N, S_MREF_D, S_MUND_T, S_MREJ_T, S_MCAND_N,
+    S_MCAND_D, S_MCAND_T, F_ACC, F_ROT, F_BIAS, F_RG, F_RA, F_MAG, C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B,
+    C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V, C_WM, C_WV, C_WR, DEG, EPS, initial_state, S_GPREV, S_GSAME_T, S_GSAME_N,
+    S_GFROZEN, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES, S_GMAX, S_GCLIPPED, S_AMAX,
+    S_ACLIPPED, P_GCLIP_FLOOR, P_ACLIP_FLOOR, CLIP_MIN_REPEATS, S_TS_TYP, S_GAP, P_GAP_F)
 from . import quat as _quat
 from .ops import float_ops
-
 
 # ------------------------------------------------------------------------------ the step
 # The ops table this module is built with: the float table (numba) when imported normally;
@@ -96,13 +91,12 @@ def coefficients(p, ts, c):
     c[C_WR] = pr * pr / v + pr
 
 # ------------------------------------------------------------------ low-pass filters
-# A group of d components at s[f]: [running, count, x1 (d), x2 (d), y1 (d), y2 (d)]. During the
-# first tau seconds the output is the mean of the samples so far (x1 holds the sum); at
-# count·ts ≥ tau the filter starts from that mean in steady state (VQF's filterVec).
-# Direct form I: the memory is the last two inputs and outputs, which mean the same whatever the
-# coefficients, so a step that changes every sample continues the same signal; VQF's transposed
-# form II keeps coefficient-dependent states that jump (±30 % timestamp jitter flagged 100 % of
-# samples magnetically disturbed, 69 % evenly). With a fixed step both are one difference equation.
+# A group of d components at s[f]: [running, count, x1 (d), x2 (d), y1 (d), y2 (d)]. For the first
+# tau seconds the output is the mean so far (x1 holds the sum), then the filter starts from it in
+# steady state (VQF's filterVec). Direct form I: its memory (last two inputs and outputs) means the
+# same whatever the coefficients, so a step that changes every sample continues the signal (VQF's
+# transposed form II jumps: ±30 % stamp jitter flagged 100 % of samples magnetically disturbed, 69 %
+# evenly). With a fixed step both are one difference equation.
 @jit
 def lp_begin(s, f, tau, ts):
     run = s[f] > 0.5
@@ -122,16 +116,19 @@ def lp(s, c, f, d, i, x, at_b, at_a, run, n, start):
     total = s[x1] + x
     mean = total / n
     zero = 0.0 * mean
-    s[x2] = where(run, s[x1], where(start, mean, zero))
-    s[x1] = where(run, x, where(start, mean, total))
-    s[y2] = where(run, s[y1], where(start, mean, zero))
-    s[y1] = where(run, y, where(start, mean, zero))
-    return where(run, y, mean)
+    # a running filter holds over a gap's step (S_GAP, set by gyro_update): its memory, read with
+    # the long step's coefficients, then at the short one, overshoots (2 s gap: 142° for 6 s)
+    hold = both(run, s[S_GAP] > 0.5)
+    y_old = s[y1]
+    s[x2] = where(hold, s[x2], where(run, s[x1], where(start, mean, zero)))
+    s[x1] = where(hold, s[x1], where(run, x, where(start, mean, total)))
+    s[y2] = where(hold, s[y2], where(run, s[y1], where(start, mean, zero)))
+    s[y1] = where(hold, s[y1], where(run, y, where(start, mean, zero)))
+    return where(hold, y_old, where(run, y, mean))
 
 @jit
 def lp_end(s, f, run, start):
     s[f] = where(either(run, start), 1.0, 0.0)
-
 
 @jit
 def lp3(s, c, f, x0, x1, x2, at_b, at_a, tau, ts):
@@ -194,6 +191,13 @@ def frozen_check(s, p, ts, prev, same_t, same_n, flag, maxabs, clipflag, floor, 
 @jit
 def gyro_update(s, p, c, gx, gy, gz):
     ts = c[C_TS]
+    # a gap (a step far longer than the typical one, a running mean: samples lost): the rate over
+    # it is the mean of the readings either side (what resampling onto the grid gives), not the
+    # last reading over the whole gap; the low-pass filters hold over it (lp)
+    gap = both(p[P_GAP_F] > 0.0, both(s[S_TS_TYP] > 0.0, ts > p[P_GAP_F] * s[S_TS_TYP]))
+    s[S_TS_TYP] = where(s[S_TS_TYP] > 0.0, s[S_TS_TYP] + 0.1 * (ts - s[S_TS_TYP]), ts + 0.0 * gx)
+    s[S_GAP] = where(gap, 1.0 + 0.0 * gx, 0.0 * gx)
+    p0, p1, p2 = s[S_GPREV], s[S_GPREV + 1], s[S_GPREV + 2]  # the reading before (before the check moves it)
     # a frozen gyro is not integrated (the attitude holds) and is not rest (no bias from it)
     frozen = frozen_check(s, p, ts, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, S_GMAX, S_GCLIPPED,
                           p[P_GCLIP_FLOOR], gx, gy, gz)
@@ -207,9 +211,9 @@ def gyro_update(s, p, c, gx, gy, gz):
         s[S_REST_T] = where(moving, 0.0 * l0, s[S_REST_T])
         s[S_REST] = where(moving, 0.0 * l0, s[S_REST])
         s[S_REST_G], s[S_REST_G + 1], s[S_REST_G + 2] = l0, l1, l2
-    wx = gx - s[S_BIAS]
-    wy = gy - s[S_BIAS + 1]
-    wz = gz - s[S_BIAS + 2]
+    wx = where(gap, 0.5 * (gx + p0), gx) - s[S_BIAS]
+    wy = where(gap, 0.5 * (gy + p1), gy) - s[S_BIAS + 1]
+    wz = where(gap, 0.5 * (gz + p2), gz) - s[S_BIAS + 2]
     n2 = wx * wx + wy * wy + wz * wz
     norm = sqrt(n2 + 1e-300)  # the tiny term keeps the gradient finite at a zero rate
     turn = both(norm > EPS, negate(frozen))
@@ -230,11 +234,9 @@ def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
     ts = c[C_TS]
     frozen = frozen_check(s, p, ts, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, S_AMAX, S_ACLIPPED,
                           p[P_ACLIP_FLOOR], ax, ay, az)
-    # a frozen or clipped accelerometer is not trusted (no inclination correction, no rest; a
-    # clipped one reads less than the force)
+    # a frozen or clipped accelerometer is not trusted (a clipped one reads less than the force); nor is
+    # the bias learnt while either sensor is frozen (a held gyro's drift would be carried past as bias)
     acc_trust = where(either(frozen, s[S_ACLIPPED] > 0.5), 0.0 * acc_trust, acc_trust)
-    # nor is the bias learnt while either sensor is frozen: the inclination drift of a held gyro
-    # would be read as bias and carried past the fault
     bias_trust = where(either(frozen, s[S_GFROZEN] > 0.5), 0.0 * bias_trust, bias_trust)
     if p[P_REST_BIAS] > 0.5:
         l0, l1, l2 = lp3(s, c, F_RA, nograd(ax), nograd(ay), nograd(az), C_REST_B, C_REST_A, p[P_REST_TAU], ts)

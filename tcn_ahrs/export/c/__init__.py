@@ -31,7 +31,9 @@ is rejected as disturbed), ``NAME_FLAG_ACC_SKIPPED`` / ``NAME_FLAG_MAG_SKIPPED``
 reading, skipped as VQF does), ``NAME_FLAG_GYRO_FROZEN`` / ``NAME_FLAG_ACC_FROZEN`` (the sensor's
 three readings repeated exactly for ``frozen_time``: a frozen gyro is not integrated, a frozen
 accelerometer not trusted), ``NAME_FLAG_GYRO_CLIPPED`` / ``NAME_FLAG_ACC_CLIPPED`` (an axis repeats
-its largest magnitude so far above the clip floor: saturated; a clipped accelerometer is not trusted). The backbone's scalar type is ``TCN_AHRS_REAL`` (float by default;
+its largest magnitude so far above the clip floor: saturated; a clipped accelerometer is not trusted),
+``NAME_FLAG_GAP`` (``dt`` over ``gap_factor`` × the typical step: samples were lost; the gyro is
+not integrated over it). The backbone's scalar type is ``TCN_AHRS_REAL`` (float by default;
 ``-DTCN_AHRS_REAL=double`` for a double build); its low-pass filters, their coefficients and the
 heading update compute in double in both (``runtime.WIDE_KERNELS``), the networks in float32.
 """
