@@ -39,7 +39,12 @@ def _imu(axes: int, seed: int) -> torch.Tensor:
     if axes == 9:
         parts.append(torch.tensor([0.0, 20.0, -40.0]) + torch.randn(N, 3, generator=g))
     imu = torch.cat(parts, 1)
-    imu[60:230, 0:6] = torch.tensor([0.01, -0.005, 0.0, 0.0, 0.0, 9.81])  # a rest phase (bias update)
+    # a rest phase (bias update), with a sensor's noise: exactly repeated readings are a frozen sensor
+    imu[60:230, 0:6] = torch.tensor([0.01, -0.005, 0.0, 0.0, 0.0, 9.81]) + 1e-4 * torch.randn(170, 6, generator=g)
+    # sensor faults, so that every runtime's health check is compared too: a frozen gyro, then a
+    # frozen accelerometer (frozen after 10 samples here)
+    imu[235:260, 0:3] = imu[235, 0:3].clone()
+    imu[265:290, 3:6] = imu[265, 3:6].clone()
     return imu
 
 
@@ -71,8 +76,12 @@ def test_loaded_batch_and_streaming_match_evaluation(tmp_path, axes):
         assert float(_angle(q_ref, q_s).max()) < TOL
         assert float((w_b - w_ref).abs().max()) < TOL and float((w_s - w_b).abs().max()) < TOL
     with torch.no_grad():
-        rest = model.run_sequence(imu[None], dt[None], so3.quat_to_matrix(q0.double())[None], 0)["rest"]
-    assert 50 < float(rest.sum()) < 200  # the comparison covers the bias update at rest
+        out = model.run_sequence(imu[None], dt[None], so3.quat_to_matrix(q0.double())[None], 0)
+    assert 50 < float(out["rest"].sum()) < 200  # the comparison covers the bias update at rest
+    # ... and both sensors frozen, from the 10th repeated sample on (the attitude held, then the
+    # accelerometer not trusted)
+    assert out["gyro_frozen"][0].nonzero().flatten().tolist() == list(range(244, 260))
+    assert out["acc_frozen"][0].nonzero().flatten().tolist() == list(range(274, 290))
     # step by step after reset = run, and chunks of any size = steps
     stream.reset(q0)
     q_k = [stream.step(imu[k], 1.0 / RATE)[0] for k in range(N)]

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.filters import backbone as bb
@@ -57,7 +58,7 @@ def test_a_frozen_sensor_is_flagged_and_the_filter_recovers_faster_than_vqf(walk
     vqf = build("vqf", 9).run(f, f.quat[0], 0).quat
     after = slice(K1 + int(10 * RATE), K1 + int(20 * RATE))  # 10-20 s after the fault
     ours, theirs = _angle(out["quat"], f.quat)[after].mean(), _angle(vqf, f.quat)[after].mean()
-    assert ours <= theirs  # measured: gyro 15.5 vs 40.4, accelerometer 1.7 vs 2.2 deg
+    assert ours <= theirs  # measured: gyro 1.1 vs 40.4 (the heading taken again at the end), accelerometer 1.7 vs 2.2 deg
     if sensor == "gyro":  # held, not integrated: the inclination stays (2.6 vs 47 deg integrating it)
         unchecked = bb.run(f.gyro, f.accel, f.mag, f.dt, bb.BackboneParams(frozen_time=0.0), q0=f.quat[0])
         during = slice(K0, K1)
@@ -258,3 +259,29 @@ def test_the_fault_table_names_every_fault_and_the_checks_help():
         e = row["errors"]
         assert e["now"]["after"] <= e["before"]["after"] + 0.2, case
     assert "| gyro frozen 5 s | `gyro_frozen`" in markdown(result)
+
+
+def test_the_learned_closed_loop_holds_through_a_frozen_gyro(monkeypatch):
+    """The shipped closed loop (checkpoints/euroc6.ckpt, its own filter, not the backbone's kernel):
+    a gyro frozen for 5 s while walking is held, not integrated (inclination during the fault,
+    three walks: 6.8° against 20.2° unchecked, VQF 40.0°; its clean error on this simulated device
+    6.3°). Every runtime's check is compared in tests/test_export_closed_loop.py."""
+    import tcn_ahrs.model.closed_loop as cl
+    from tcn_ahrs.estimators.learned import LearnedEstimator
+    from tcn_ahrs.metrics import broad_error_angles
+
+    rate = 200.0
+    seq = dataclasses.replace(simulate("walking", 30.0, rate, seed=0, device_seed=1), mag=None)
+    k0, k1 = int(10 * rate), int(15 * rate)
+    gyro = seq.gyro.copy()
+    gyro[k0:k1] = gyro[k0]
+    f = dataclasses.replace(seq, gyro=gyro)
+    est = LearnedEstimator(Path(__file__).resolve().parents[1] / "checkpoints" / "euroc6.ckpt")
+
+    def inclination_during():
+        q = np.asarray(est.run(f, f.quat[0], 0).quat)
+        return np.degrees(broad_error_angles(f.quat, q)["inclination"])[k0:k1].mean()
+
+    ours = inclination_during()
+    monkeypatch.setattr(cl, "frozen_detector", lambda x, window: torch.zeros_like(x[..., 0]))
+    assert ours < 0.5 * inclination_during()

@@ -10,10 +10,10 @@ import torch
 from torch import Tensor, nn
 
 from .. import so3
-from ..kernels.closed_loop import closed_loop_update, east_reference_scalar, loop_inputs, rest_update
+from ..kernels.closed_loop import closed_loop_update, east_reference_scalar, loop_inputs, repeat_count, rest_update
 from ..kernels.quat import matrix_to_quat as matrix_to_quat_scalar
 from ..model.closed_loop_step import split_row
-from ..model.closed_loop import window_samples
+from ..model.closed_loop import frozen_window, window_samples
 from .fused import fuse_model
 from .inputs import ExportError, InputChecks
 from .open_loop import StreamingAHRS
@@ -115,6 +115,7 @@ class ClosedLoopStreaming(StreamingAHRS):
     east_ref: List[float]
     rest_ring: List[float]
     rest_sums: List[float]
+    last_reading: List[float]
 
     def __init__(self, model: nn.Module, metadata: Mapping[str, Any]):
         if model.closed is None:
@@ -145,6 +146,12 @@ class ClosedLoopStreaming(StreamingAHRS):
         self.rest_sums = [0.0] * 6
         self.last_unsteady_gyro = -self.window - 1
         self.last_unsteady_acc = -self.window - 1
+        # sensor health (the batch module's frozen_detector): the last gyro and acc reading and
+        # how many samples each has repeated
+        self.frozen_window = frozen_window(self.window, float(closed.rest_time))
+        self.last_reading = [0.0] * 6
+        self.gyro_repeats = 0
+        self.acc_repeats = 0
 
     @torch.jit.export
     def reset(self, q0: Tensor) -> None:
@@ -161,6 +168,9 @@ class ClosedLoopStreaming(StreamingAHRS):
         self.rest_sums = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # replaced, never written in place
         self.last_unsteady_gyro = -self.window - 1
         self.last_unsteady_acc = -self.window - 1
+        self.last_reading = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # replaced, never written in place
+        self.gyro_repeats = 0
+        self.acc_repeats = 0
         self.t = 0
         self._reset_rings()
 
@@ -183,6 +193,15 @@ class ClosedLoopStreaming(StreamingAHRS):
             q[0], q[1], q[2], q[3], q[4], q[5], g0, g1, g2, r3, r4, r5, o0, o1, o2, o3, o4, o5, t, w,
             self.last_unsteady_gyro, self.last_unsteady_acc, self.rest_gyro, self.rest_acc)
         self.rest_sums = [s0, s1, s2, s3, s4, s5]
+        # sensor health: a frozen gyro is not integrated (dt held at 0), a frozen accelerometer
+        # not trusted (nor the measured east built from it)
+        p = self.last_reading
+        self.gyro_repeats = repeat_count(p[0], p[1], p[2], g0, g1, g2, self.gyro_repeats, t)
+        self.acc_repeats = repeat_count(p[3], p[4], p[5], r3, r4, r5, self.acc_repeats, t)
+        self.last_reading = [g0, g1, g2, r3, r4, r5]
+        gyro_ok = 0.0 if self.gyro_repeats >= self.frozen_window - 1 else 1.0
+        acc_ok = 0.0 if self.acc_repeats >= self.frozen_window - 1 else 1.0
+        rest = rest * gyro_ok * acc_ok
         bx, by, bz, field = 0.0, 0.0, 0.0, 0.0
         if c == 9:
             bx, by, bz = v[6], v[7], v[8]
@@ -190,6 +209,8 @@ class ClosedLoopStreaming(StreamingAHRS):
         ux, uy, uz, mx, my, mz, ka, km = loop_inputs(
             v[3], v[4], v[5], bx, by, bz, r3, r4, r5, field, -v[c], -v[c + 1], self.use_acc, self.use_mag,
             self.k_acc, self.k_mag, self.acc_reject, self.gravity, self.mag_min, self.mag_max)
+        ka, km = ka * acc_ok, km * acc_ok
+        dt = dt * gyro_ok
         s = self.state
         gx, gy, gz = v[0], v[1], v[2]
         if t == 0:

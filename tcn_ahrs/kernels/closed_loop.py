@@ -88,6 +88,15 @@ def rest_update(s0: float, s1: float, s2: float, s3: float, s4: float, s5: float
     return s0, s1, s2, s3, s4, s5, last_gyro, last_acc, rest
 
 
+def repeat_count(p0: float, p1: float, p2: float, x: float, y: float, z: float, count: int, t: int) -> int:
+    """Sensor health: how many samples in a row a reading (x, y, z) has repeated the one before
+    (p0, p1, p2) exactly; frozen from ``count >= window - 1`` (:func:`~tcn_ahrs.model.closed_loop.frozen_detector`
+    on tensors). ``t``: the sample's index (the first has nothing before it)."""
+    if t > 0 and x == p0 and y == p1 and z == p2:
+        return count + 1
+    return 0
+
+
 def loop_inputs(ax: float, ay: float, az: float, bx: float, by: float, bz: float,
                 rx: float, ry: float, rz: float, field_norm: float, acc_logit: float, mag_logit: float,
                 use_acc: bool, use_mag: bool, acc_gain: float, mag_gain: float, acc_reject: float,

@@ -50,6 +50,7 @@ from torch import Tensor, nn
 from ..config.model import ClosedLoopConfig
 from ..conventions import GRAVITY
 from ..filters.common import field_gates
+from ..kernels.backbone_layout import FROZEN_MIN_SAMPLES, BackboneParams
 from . import closed_loop_compiled
 from .closed_loop_step import scan_scalar
 from .open_loop import unit_vector
@@ -93,6 +94,28 @@ def rest_detector(gyro: Tensor, acc: Tensor, window: int, rest_gyro: float = mat
     max_a = F.max_pool1d(F.pad(dev_a.unsqueeze(1), [w - 1, 0], value=0.0), w, 1).squeeze(1)
     rest = (max_g < rest_gyro) & (max_a < rest_acc) & (idx >= w).unsqueeze(0)
     return rest.to(out_dtype)
+
+
+FROZEN_TIME = BackboneParams.frozen_time  # s: one default, the backbone's
+
+
+def frozen_window(rest_window: int, rest_time: float, frozen_time: float = FROZEN_TIME,
+                  min_samples: int = int(FROZEN_MIN_SAMPLES)) -> int:
+    """Samples a reading must repeat exactly for to count as frozen: the backbone's rule
+    (``frozen_time`` and :data:`FROZEN_MIN_SAMPLES`) at the rate the rest window implies."""
+    return max(min_samples, int(round(rest_window * frozen_time / rest_time)))
+
+
+def frozen_detector(x: Tensor, window: int) -> Tensor:
+    """Sensor health (B, N) in {0., 1.}: the three readings of x (B, N, 3) have repeated exactly
+    (bit for bit) over the last ``window`` samples — a frozen or disconnected sensor (its noise
+    makes a real one change); the backbone's check (kernels/backbone.py ``frozen_check``) on a
+    regular stream, as tensor ops; one sample at a time: :func:`~tcn_ahrs.kernels.closed_loop.repeat_count`."""
+    same = (x[:, 1:] == x[:, :-1]).all(-1).to(torch.float64)
+    c = torch.cumsum(F.pad(same, [1, 0]), 1)  # c[k]: repeats up to sample k
+    m = int(window) - 1
+    before = F.pad(c, [m, 0])[:, :c.shape[1]]  # c[k - m] (0 before the start)
+    return ((c - before) >= m).to(x.dtype)
 
 
 def east_reference(rot0: Tensor, acc0: Tensor, mag0: Tensor) -> Tensor:
@@ -183,6 +206,7 @@ class ClosedLoopFilter(nn.Module):
         self.rest_gyro = float(rest_gyro)
         self.rest_acc = float(rest_acc)
         self.register_buffer("rest_window", torch.zeros((), dtype=torch.long))
+        self.frozen_time, self.frozen_min_samples = float(FROZEN_TIME), int(FROZEN_MIN_SAMPLES)
         if backend not in ("auto", "torch", "numba"):
             raise ValueError(f"ClosedLoopFilter: backend {backend!r}: expected 'auto', 'torch' or 'numba'")
         self.backend = str(backend)
@@ -254,12 +278,20 @@ class ClosedLoopFilter(nn.Module):
         the raw readings, trust ``2σ(logit)``, then :meth:`forward` in ``dtype`` from sample
         ``context`` on (the samples before only warm the causal networks up). Returns ``cal``
         plus ``rot``, ``gyro_bias``, ``correction`` (B, N - context, ...), ``east_ref``,
-        ``rest``, ``acc_trust``, ``mag_trust`` (B, N)."""
+        ``rest``, ``gyro_frozen``, ``acc_frozen``, ``acc_trust``, ``mag_trust`` (B, N)."""
         rest = self.rest(imu[..., 0:3], imu[..., 3:6], dt)
+        # sensor health: a frozen gyro is not integrated (the step is held: no turn, no bias
+        # change), a frozen accelerometer not trusted (nor the measured east built from it)
+        fw = frozen_window(self.window(dt), self.rest_time, self.frozen_time, self.frozen_min_samples)
+        gyro_frozen = frozen_detector(imu[..., 0:3], fw)
+        acc_frozen = frozen_detector(imu[..., 3:6], fw)
+        rest = rest * (1.0 - gyro_frozen) * (1.0 - acc_frozen)
+        dt_run = dt * (1.0 - gyro_frozen)
         raw_mag: Optional[Tensor] = None
         if imu.shape[-1] >= 9:
             raw_mag = imu[..., 6:9]
         acc_ok, mag_ok = self.gates(imu[..., 3:6], raw_mag)
+        acc_ok, mag_ok = acc_ok * (1.0 - acc_frozen), mag_ok * (1.0 - acc_frozen)
         acc_trust = 2.0 * torch.sigmoid(cal["acc_trust_logit"]) * acc_ok
         mag_trust = torch.ones_like(acc_trust)
         mag: Optional[Tensor] = None
@@ -272,11 +304,13 @@ class ClosedLoopFilter(nn.Module):
         out = self.forward(cal["gyro"][:, context:].to(dtype), cal["acc"][:, context:].to(dtype), mag,
                            imu[:, context:, 3:6].to(dtype), acc_trust[:, context:].to(dtype),
                            mag_trust[:, context:].to(dtype), rest[:, context:].to(dtype),
-                           dt[:, context:].to(dtype), rot0.to(dtype), bias0.to(dtype), ref)
+                           dt_run[:, context:].to(dtype), rot0.to(dtype), bias0.to(dtype), ref)
         res = dict(cal)
         for k, v in out.items():
             res[k] = v
         res["rest"] = rest
+        res["gyro_frozen"] = gyro_frozen
+        res["acc_frozen"] = acc_frozen
         res["acc_trust"] = acc_trust
         res["mag_trust"] = mag_trust
         return res

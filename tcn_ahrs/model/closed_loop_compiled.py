@@ -23,6 +23,7 @@ try:
     _jit = numba.njit(cache=True, inline="always")
     update_nb = _jit(scalar.closed_loop_update)
     rest_update_nb = _jit(scalar.rest_update)
+    repeat_count_nb = _jit(scalar.repeat_count)
     loop_inputs_nb = _jit(scalar.loop_inputs)
     east_reference_nb = _jit(scalar.east_reference_scalar)
     AVAILABLE = True

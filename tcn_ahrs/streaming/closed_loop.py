@@ -18,12 +18,14 @@ if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportErro
     from ..kernels.quat import matrix_to_quat_nb as _to_quat
     from ..model.closed_loop_compiled import east_reference_nb as _east_ref
     from ..model.closed_loop_compiled import loop_inputs_nb as _loop_inputs
+    from ..model.closed_loop_compiled import repeat_count_nb as _repeat_count
     from ..model.closed_loop_compiled import rest_update_nb as _rest_update
     from ..model.closed_loop_compiled import update_nb as _update
     from .networks import networks_step, scratch
 
-# state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, rest ring (6 w)
-_STATE_RING = 24
+# state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, last gyro and acc
+# reading (6), their repeat counts (2), rest ring (6 w)
+_STATE_RING = 32
 
 
 if AVAILABLE:
@@ -53,6 +55,14 @@ if AVAILABLE:
                 state[16], state[17], state[18], state[19], state[20], state[21], x[0], x[1], x[2], x[3], x[4], x[5],
                 o0, o1, o2, o3, o4, o5, t, w, int(state[22]), int(state[23]), cfg[4], cfg[5])
             state[22], state[23] = lg, la
+            # ---- sensor health: a frozen gyro is not integrated, a frozen accelerometer not trusted
+            state[30] = _repeat_count(state[24], state[25], state[26], x[0], x[1], x[2], int(state[30]), t)
+            state[31] = _repeat_count(state[27], state[28], state[29], x[3], x[4], x[5], int(state[31]), t)
+            for i in range(6):
+                state[24 + i] = x[i]
+            gyro_ok = 0.0 if state[30] >= cfg[10] - 1.0 else 1.0
+            acc_ok = 0.0 if state[31] >= cfg[10] - 1.0 else 1.0
+            rest = rest * gyro_ok * acc_ok
             # ---- filter
             bx = by = bz = field = 0.0
             if c == 9:
@@ -61,13 +71,14 @@ if AVAILABLE:
             ux, uy, uz, mx, my, mz, ka, km = _loop_inputs(
                 v[3], v[4], v[5], bx, by, bz, x[3], x[4], x[5], field, -v[c], -v[c + 1], use_acc, use_mag,
                 cfg[0], cfg[1], cfg[6], cfg[7], cfg[8], cfg[9])
+            ka, km = ka * acc_ok, km * acc_ok
             s = state
             c0 = c1 = c2 = 0.0
             if t == 0:
                 if use_mag:
                     s[13], s[14], s[15] = _east_ref(s[1], s[2], s[3], s[4], s[5], s[6], mx, my, mz)
             else:
-                dt = dts[k]
+                dt = dts[k] * gyro_ok
                 (s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11], s[12], c0, c1, c2) = _update(
                     s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11], s[12], v[0], v[1], v[2],
                     ux, uy, uz, mx, my, mz, ka, km, min(1.0, rest * dt / cfg[3]), s[13], s[14], s[15], dt, cfg[2])
@@ -110,7 +121,7 @@ class CompiledStreaming:
         # of ~40 small ops — 4.1 µs at 256, 2.8 µs at 1024; the compiled loop 4.5 µs at any size)
         self.chunk_networks = 256
         self._cfg = np.asarray([ts.k_acc, ts.k_mag, ts.k_bias, ts.rest_tc, ts.rest_gyro, ts.rest_acc,
-                                ts.acc_reject, ts.gravity, ts.mag_min, ts.mag_max], dtype=np.float64)
+                                ts.acc_reject, ts.gravity, ts.mag_min, ts.mag_max, ts.frozen_window], dtype=np.float64)
         self._state = np.zeros(_STATE_RING + 6 * ts.window)
         self._out1 = np.empty((1, 7))
         self._dt1 = np.zeros(1)
