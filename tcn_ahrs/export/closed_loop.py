@@ -10,7 +10,8 @@ import torch
 from torch import Tensor, nn
 
 from .. import so3
-from ..kernels.closed_loop import closed_loop_update, east_reference_scalar, loop_inputs, repeat_count, rest_update
+from ..kernels.closed_loop import (closed_loop_update, east_reference_scalar, gap_step, loop_inputs, repeat_count,
+                                   rest_update)
 from ..kernels.quat import matrix_to_quat as matrix_to_quat_scalar
 from ..model.closed_loop_step import split_row
 from ..model.closed_loop import frozen_window, window_samples
@@ -116,6 +117,7 @@ class ClosedLoopStreaming(StreamingAHRS):
     rest_ring: List[float]
     rest_sums: List[float]
     last_reading: List[float]
+    last_gyro: List[float]
 
     def __init__(self, model: nn.Module, metadata: Mapping[str, Any]):
         if model.closed is None:
@@ -152,6 +154,9 @@ class ClosedLoopStreaming(StreamingAHRS):
         self.last_reading = [0.0] * 6
         self.gyro_repeats = 0
         self.acc_repeats = 0
+        self.gap_factor = float(closed.gap_factor)
+        self.typical_step = 0.0
+        self.last_gyro = [0.0] * 3
 
     @torch.jit.export
     def reset(self, q0: Tensor) -> None:
@@ -171,6 +176,8 @@ class ClosedLoopStreaming(StreamingAHRS):
         self.last_reading = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # replaced, never written in place
         self.gyro_repeats = 0
         self.acc_repeats = 0
+        self.typical_step = 0.0
+        self.last_gyro = [0.0, 0.0, 0.0]  # replaced, never written in place
         self.t = 0
         self._reset_rings()
 
@@ -210,9 +217,14 @@ class ClosedLoopStreaming(StreamingAHRS):
             v[3], v[4], v[5], bx, by, bz, r3, r4, r5, field, -v[c], -v[c + 1], self.use_acc, self.use_mag,
             self.k_acc, self.k_mag, self.acc_reject, self.gravity, self.mag_min, self.mag_max)
         ka, km = ka * acc_ok, km * acc_ok
-        dt = dt * gyro_ok
         s = self.state
         gx, gy, gz = v[0], v[1], v[2]
+        if t > 0:  # a gap (samples lost): the rate over it is the mean of the readings either side
+            self.typical_step, gap = gap_step(self.typical_step, dt, self.gap_factor)
+            if gap > 0.5:
+                gx, gy, gz = 0.5 * (gx + self.last_gyro[0]), 0.5 * (gy + self.last_gyro[1]), 0.5 * (gz + self.last_gyro[2])
+        self.last_gyro = [v[0], v[1], v[2]]
+        dt = dt * gyro_ok
         if t == 0:
             if self.use_mag:
                 e0, e1, e2 = east_reference_scalar(s[0], s[1], s[2], s[3], s[4], s[5], mx, my, mz)
@@ -230,7 +242,7 @@ class ClosedLoopStreaming(StreamingAHRS):
             self.state = out
         self.t = t + 1
         qw, qx, qy, qz = matrix_to_quat_scalar(out[0], out[1], out[2], out[3], out[4], out[5], out[6], out[7], out[8])
-        return [qw, qx, qy, qz, gx - out[9] + c0, gy - out[10] + c1, gz - out[11] + c2]
+        return [qw, qx, qy, qz, v[0] - out[9] + c0, v[1] - out[10] + c1, v[2] - out[11] + c2]
 
     @torch.jit.export
     def step(self, sample: Tensor, dt: Union[float, Tensor]) -> Tuple[Tensor, Tensor]:

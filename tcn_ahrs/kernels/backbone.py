@@ -40,7 +40,7 @@ from .backbone_layout import (  # noqa: F401 (the layout, read by the step as co
     S_MCAND_D, S_MCAND_T, F_ACC, F_ROT, F_BIAS, F_RG, F_RA, F_MAG, C_TS, C_ACC_B, C_ACC_A, C_REST_B, C_REST_A, C_MAG_B,
     C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V, C_WM, C_WV, C_WR, DEG, EPS, initial_state, S_GPREV, S_GSAME_T, S_GSAME_N,
     S_GFROZEN, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES, S_GMAX, S_GCLIPPED, S_AMAX,
-    S_ACLIPPED, P_GCLIP_FLOOR, P_ACLIP_FLOOR, CLIP_MIN_REPEATS, S_TS_TYP, S_GAP, P_GAP_F)
+    S_ACLIPPED, P_GCLIP_FLOOR, P_ACLIP_FLOOR, CLIP_MIN_REPEATS, S_TS_TYP, S_GAP, P_GAP_F, S_HEAD_RESTART)
 from . import quat as _quat
 from .ops import float_ops
 
@@ -197,14 +197,16 @@ def gyro_update(s, p, c, gx, gy, gz):
     gap = both(p[P_GAP_F] > 0.0, both(s[S_TS_TYP] > 0.0, ts > p[P_GAP_F] * s[S_TS_TYP]))
     s[S_TS_TYP] = where(s[S_TS_TYP] > 0.0, s[S_TS_TYP] + 0.1 * (ts - s[S_TS_TYP]), ts + 0.0 * gx)
     s[S_GAP] = where(gap, 1.0 + 0.0 * gx, 0.0 * gx)
-    p0, p1, p2 = s[S_GPREV], s[S_GPREV + 1], s[S_GPREV + 2]  # the reading before (before the check moves it)
+    p0, p1, p2, was_frozen = s[S_GPREV], s[S_GPREV + 1], s[S_GPREV + 2], s[S_GFROZEN] > 0.5  # before the check
     # a frozen gyro is not integrated (the attitude holds) and is not rest (no bias from it)
-    was_frozen = s[S_GFROZEN] > 0.5
     frozen = frozen_check(s, p, ts, S_GPREV, S_GSAME_T, S_GSAME_N, S_GFROZEN, S_GMAX, S_GCLIPPED,
                           p[P_GCLIP_FLOOR], gx, gy, gz)
-    # when it moves again the held heading is stale (the body turned): taken from the magnetometer
-    # again as at the start (5 s frozen while walking, 10-20 s after: 3.4° instead of 23.3°)
-    s[S_KMINIT] = where(both(was_frozen, negate(frozen)), 1.0 + 0.0 * gx, s[S_KMINIT])
+    # moving again, the held heading is stale: taken from the field again as at the start once the
+    # inclination had tau_acc to settle (at once: BROAD 20° 10-20 s after, VQF 10°, settled first 7°)
+    wait = s[S_HEAD_RESTART]
+    wait = where(both(was_frozen, negate(frozen)), p[P_TAU_ACC] + 0.0 * gx, where(wait > 0.0, wait - ts, wait))
+    s[S_KMINIT] = where(both(s[S_HEAD_RESTART] > 0.0, wait <= 0.0), 1.0 + 0.0 * gx, s[S_KMINIT])
+    s[S_HEAD_RESTART] = wait
     if p[P_REST_BIAS] > 0.5 or p[P_MAG_REJ] > 0.5:
         # rest detection, gyro part: deviation from the low-passed rate (decisions only)
         l0, l1, l2 = lp3(s, c, F_RG, nograd(gx), nograd(gy), nograd(gz), C_REST_B, C_REST_A, p[P_REST_TAU], ts)

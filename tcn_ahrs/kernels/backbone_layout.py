@@ -94,7 +94,7 @@ STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("
                  ("gyr_prev", 3), ("gyr_same_time", 1), ("gyr_same_count", 1), ("gyr_frozen", 1),
                  ("acc_prev", 3), ("acc_same_time", 1), ("acc_same_count", 1), ("acc_frozen", 1),
                  ("gyr_max_abs", 3), ("gyr_clip_run", 3), ("gyr_clipped", 1), ("acc_max_abs", 3), ("acc_clip_run", 3),
-                 ("acc_clipped", 1), ("ts_typical", 1), ("gap", 1)]
+                 ("acc_clipped", 1), ("ts_typical", 1), ("gap", 1), ("heading_restart_in", 1)]
                 + [(n, 2 + 4 * d) for n, d in _FILTERS])
 COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
                  ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
@@ -131,7 +131,7 @@ S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN = _S["acc_prev"], _S["acc_same_time"], 
 P_FROZEN_T = _P["frozen_time"]
 S_GMAX, S_GCLIPPED, S_AMAX, S_ACLIPPED = _S["gyr_max_abs"], _S["gyr_clipped"], _S["acc_max_abs"], _S["acc_clipped"]
 P_GCLIP_FLOOR, P_ACLIP_FLOOR = _P["gyro_clip_floor"], _P["acc_clip_floor"]
-S_TS_TYP, S_GAP, P_GAP_F = _S["ts_typical"], _S["gap"], _P["gap_factor"]
+S_TS_TYP, S_GAP, P_GAP_F, S_HEAD_RESTART = _S["ts_typical"], _S["gap"], _P["gap_factor"], _S["heading_restart_in"]
 CLIP_MIN_REPEATS = 4.0  # an axis at its extreme this many times in a row (a smooth, quantised peak
 # repeats its value once or twice: BROAD's gyro did at 2.9 rad/s)
 FROZEN_MIN_SAMPLES = 10.0  # and at least this many repeated samples (a slow IMU's 0.1 s is few)

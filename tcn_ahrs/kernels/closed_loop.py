@@ -97,6 +97,20 @@ def repeat_count(p0: float, p1: float, p2: float, x: float, y: float, z: float, 
     return 0
 
 
+def gap_step(typical: float, dt: float, factor: float) -> Tuple[float, float]:
+    """Sensor health: the backbone's gap rule (kernels/backbone.py ``gyro_update``) one step at a
+    time -> (the typical step after dt, 1.0 where dt is longer than ``factor`` × the typical step
+    before it: samples were lost). ``typical`` 0: no step seen yet; ``factor`` 0: no check."""
+    gap = 0.0
+    if factor > 0.0 and typical > 0.0 and dt > factor * typical:
+        gap = 1.0
+    if typical > 0.0:
+        typical = typical + 0.1 * (dt - typical)
+    else:
+        typical = dt
+    return typical, gap
+
+
 def loop_inputs(ax: float, ay: float, az: float, bx: float, by: float, bz: float,
                 rx: float, ry: float, rz: float, field_norm: float, acc_logit: float, mag_logit: float,
                 use_acc: bool, use_mag: bool, acc_gain: float, mag_gain: float, acc_reject: float,

@@ -51,6 +51,7 @@ from ..config.model import ClosedLoopConfig
 from ..conventions import GRAVITY
 from ..filters.common import field_gates
 from ..kernels.backbone_layout import FROZEN_MIN_SAMPLES, BackboneParams
+from ..kernels.closed_loop import gap_step
 from . import closed_loop_compiled
 from .closed_loop_step import scan_scalar
 from .open_loop import unit_vector
@@ -97,6 +98,7 @@ def rest_detector(gyro: Tensor, acc: Tensor, window: int, rest_gyro: float = mat
 
 
 FROZEN_TIME = BackboneParams.frozen_time  # s: one default, the backbone's
+GAP_FACTOR = BackboneParams.gap_factor
 
 
 def frozen_window(rest_window: int, rest_time: float, frozen_time: float = FROZEN_TIME,
@@ -116,6 +118,24 @@ def frozen_detector(x: Tensor, window: int) -> Tensor:
     m = int(window) - 1
     before = F.pad(c, [m, 0])[:, :c.shape[1]]  # c[k - m] (0 before the start)
     return ((c - before) >= m).to(x.dtype)
+
+
+def gap_detector(dt: Tensor, factor: float) -> Tensor:
+    """Sensor health (B, N) in {0., 1.}: the steps dt (B, N) longer than ``factor`` × the typical
+    step before them (samples lost; :func:`~tcn_ahrs.kernels.closed_loop.gap_step`, the backbone's
+    rule); the first step (not used by the loop) is not judged. A stream of one step: no loop."""
+    out = torch.zeros_like(dt)
+    if dt.shape[1] < 3 or bool((dt[:, 1:] == dt[:, 1:2]).all()):
+        return out
+    for b in range(dt.shape[0]):
+        typical = 0.0
+        flags: List[float] = [0.0]
+        steps: List[float] = dt[b, 1:].tolist()
+        for step in steps:
+            typical, gap = gap_step(typical, step, factor)
+            flags.append(gap)
+        out[b] = torch.tensor(flags, dtype=dt.dtype, device=dt.device)
+    return out
 
 
 def east_reference(rot0: Tensor, acc0: Tensor, mag0: Tensor) -> Tensor:
@@ -207,6 +227,7 @@ class ClosedLoopFilter(nn.Module):
         self.rest_acc = float(rest_acc)
         self.register_buffer("rest_window", torch.zeros((), dtype=torch.long))
         self.frozen_time, self.frozen_min_samples = float(FROZEN_TIME), int(FROZEN_MIN_SAMPLES)
+        self.gap_factor = float(GAP_FACTOR)
         if backend not in ("auto", "torch", "numba"):
             raise ValueError(f"ClosedLoopFilter: backend {backend!r}: expected 'auto', 'torch' or 'numba'")
         self.backend = str(backend)
@@ -278,7 +299,7 @@ class ClosedLoopFilter(nn.Module):
         the raw readings, trust ``2σ(logit)``, then :meth:`forward` in ``dtype`` from sample
         ``context`` on (the samples before only warm the causal networks up). Returns ``cal``
         plus ``rot``, ``gyro_bias``, ``correction`` (B, N - context, ...), ``east_ref``,
-        ``rest``, ``gyro_frozen``, ``acc_frozen``, ``acc_trust``, ``mag_trust`` (B, N)."""
+        ``rest``, ``gyro_frozen``, ``acc_frozen``, ``gap``, ``acc_trust``, ``mag_trust`` (B, N)."""
         rest = self.rest(imu[..., 0:3], imu[..., 3:6], dt)
         # sensor health: a frozen gyro is not integrated (the step is held: no turn, no bias
         # change), a frozen accelerometer not trusted (nor the measured east built from it)
@@ -287,6 +308,11 @@ class ClosedLoopFilter(nn.Module):
         acc_frozen = frozen_detector(imu[..., 3:6], fw)
         rest = rest * (1.0 - gyro_frozen) * (1.0 - acc_frozen)
         dt_run = dt * (1.0 - gyro_frozen)
+        # a gap (samples lost): the rate over it is the mean of the readings either side
+        gap = gap_detector(dt, self.gap_factor)
+        gyro = cal["gyro"]
+        before = torch.cat([gyro[:, :1], gyro[:, :-1]], 1)
+        gyro = torch.where(gap.unsqueeze(-1) > 0.5, 0.5 * (gyro + before), gyro)
         raw_mag: Optional[Tensor] = None
         if imu.shape[-1] >= 9:
             raw_mag = imu[..., 6:9]
@@ -301,7 +327,7 @@ class ClosedLoopFilter(nn.Module):
         ref: Optional[Tensor] = None
         if east_ref is not None:
             ref = east_ref.to(dtype)
-        out = self.forward(cal["gyro"][:, context:].to(dtype), cal["acc"][:, context:].to(dtype), mag,
+        out = self.forward(gyro[:, context:].to(dtype), cal["acc"][:, context:].to(dtype), mag,
                            imu[:, context:, 3:6].to(dtype), acc_trust[:, context:].to(dtype),
                            mag_trust[:, context:].to(dtype), rest[:, context:].to(dtype),
                            dt_run[:, context:].to(dtype), rot0.to(dtype), bias0.to(dtype), ref)
@@ -311,6 +337,7 @@ class ClosedLoopFilter(nn.Module):
         res["rest"] = rest
         res["gyro_frozen"] = gyro_frozen
         res["acc_frozen"] = acc_frozen
+        res["gap"] = gap
         res["acc_trust"] = acc_trust
         res["mag_trust"] = mag_trust
         return res

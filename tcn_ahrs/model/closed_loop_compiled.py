@@ -24,6 +24,7 @@ try:
     update_nb = _jit(scalar.closed_loop_update)
     rest_update_nb = _jit(scalar.rest_update)
     repeat_count_nb = _jit(scalar.repeat_count)
+    gap_step_nb = _jit(scalar.gap_step)
     loop_inputs_nb = _jit(scalar.loop_inputs)
     east_reference_nb = _jit(scalar.east_reference_scalar)
     AVAILABLE = True

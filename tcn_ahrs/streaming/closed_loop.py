@@ -18,14 +18,15 @@ if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportErro
     from ..kernels.quat import matrix_to_quat_nb as _to_quat
     from ..model.closed_loop_compiled import east_reference_nb as _east_ref
     from ..model.closed_loop_compiled import loop_inputs_nb as _loop_inputs
+    from ..model.closed_loop_compiled import gap_step_nb as _gap_step
     from ..model.closed_loop_compiled import repeat_count_nb as _repeat_count
     from ..model.closed_loop_compiled import rest_update_nb as _rest_update
     from ..model.closed_loop_compiled import update_nb as _update
     from .networks import networks_step, scratch
 
 # state: t, C (9) + b (3), east_ref (3), rest sums (6), last unsteady gyro / acc, last gyro and acc
-# reading (6), their repeat counts (2), rest ring (6 w)
-_STATE_RING = 32
+# reading (6), their repeat counts (2), the typical step, the last calibrated gyro (3), rest ring (6 w)
+_STATE_RING = 36
 
 
 if AVAILABLE:
@@ -78,10 +79,15 @@ if AVAILABLE:
                 if use_mag:
                     s[13], s[14], s[15] = _east_ref(s[1], s[2], s[3], s[4], s[5], s[6], mx, my, mz)
             else:
+                gx, gy, gz = v[0], v[1], v[2]
+                s[32], gap = _gap_step(s[32], dts[k], cfg[11])
+                if gap > 0.5:  # samples lost: the rate over the gap is the mean of the readings either side
+                    gx, gy, gz = 0.5 * (gx + s[33]), 0.5 * (gy + s[34]), 0.5 * (gz + s[35])
                 dt = dts[k] * gyro_ok
                 (s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11], s[12], c0, c1, c2) = _update(
-                    s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11], s[12], v[0], v[1], v[2],
+                    s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9], s[10], s[11], s[12], gx, gy, gz,
                     ux, uy, uz, mx, my, mz, ka, km, min(1.0, rest * dt / cfg[3]), s[13], s[14], s[15], dt, cfg[2])
+            s[33], s[34], s[35] = v[0], v[1], v[2]
             state[0] = t + 1
             out[k, 0], out[k, 1], out[k, 2], out[k, 3] = _to_quat(s[1], s[2], s[3], s[4], s[5], s[6], s[7], s[8], s[9])
             out[k, 4], out[k, 5], out[k, 6] = v[0] - s[10] + c0, v[1] - s[11] + c1, v[2] - s[12] + c2
@@ -121,7 +127,7 @@ class CompiledStreaming:
         # of ~40 small ops — 4.1 µs at 256, 2.8 µs at 1024; the compiled loop 4.5 µs at any size)
         self.chunk_networks = 256
         self._cfg = np.asarray([ts.k_acc, ts.k_mag, ts.k_bias, ts.rest_tc, ts.rest_gyro, ts.rest_acc,
-                                ts.acc_reject, ts.gravity, ts.mag_min, ts.mag_max, ts.frozen_window], dtype=np.float64)
+                                ts.acc_reject, ts.gravity, ts.mag_min, ts.mag_max, ts.frozen_window, ts.gap_factor], dtype=np.float64)
         self._state = np.zeros(_STATE_RING + 6 * ts.window)
         self._out1 = np.empty((1, 7))
         self._dt1 = np.zeros(1)
