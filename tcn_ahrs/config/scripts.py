@@ -23,6 +23,10 @@ class EvaluateConfig:
     plots: bool = True
     trajectories: bool = True
     align: str = "protocol"      # the yardstick (tcn_ahrs.metrics); or heading | first | none
+    # the device check (tcn_ahrs.device_check, no ground truth): each recording's gyro bias at rest
+    # subtracted before every method; auto: with the general models (no ckpt given), off for a
+    # model trained on its own device's raw readings
+    device_check: str = "auto"   # auto | true | false
 
 
 @dataclass

@@ -39,7 +39,8 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
 
     check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
     set_threads(cfg.get("threads"))
-    if not cfg.get("ckpt"):
+    general_model = not cfg.get("ckpt")
+    if general_model:
         # your own recordings without a model of their own: the general model for their axes
         general = Path(__file__).resolve().parents[2] / "checkpoints" / f"general{int(cfg.data.get('axes', 9))}.ckpt"
         if not general.is_file():
@@ -59,7 +60,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     if is_estimator_file(cfg.ckpt):  # a classical family chosen by tcn-ahrs search
         learned = load_estimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name))
         axes = min(axes, int(learned.axes or axes))
-        return _run(cfg, learned, *_recordings(cfg), axes, out)
+        return _run(cfg, learned, *_recordings(cfg, general_model), axes, out)
     ck = load_checkpoint(cfg.ckpt)
     if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
         # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
@@ -67,19 +68,34 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
               "is scored as 6-axis (heading relative to the start)")
         axes = 6
     check_layout(ck, axes, cfg.ckpt, data_axes=dataset_axes(str(cfg.data.name)))
-    seqs, refused = _recordings(cfg)
+    seqs, refused = _recordings(cfg, general_model)
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
                                other_rate=str(cfg.get("other_rate", _D.other_rate)))
     return _run(cfg, learned, seqs, refused, axes, out)
 
 
-def _recordings(cfg: DictConfig):
-    """(the split's recordings with ground truth, [(recording, reason)] of those its checks refused)."""
+def _recordings(cfg: DictConfig, general_model: bool = False):
+    """(the split's recordings with ground truth, [(recording, reason)] of those its checks
+    refused); with the device check on (``device_check``: auto = for the general models) each
+    recording's gyro bias at rest is subtracted, and what the check found is printed."""
     from ..datasets import load_split
 
     refused: list = []
-    return [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt], refused
+    seqs = [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt]
+    mode = str(cfg.get("device_check", _D.device_check)).lower()
+    if mode not in ("auto", "true", "false"):
+        raise ValueError(f"device_check: expected auto, true or false, got {mode!r}")
+    if mode == "true" or (mode == "auto" and general_model):
+        from ..device_check import check
+
+        checked = []
+        for s in seqs:
+            dc = check(s)
+            print(f"device check, {s.name}: {dc.summary()}")
+            checked.append(dc.calibration().apply(s))
+        seqs = checked
+    return seqs, refused
 
 
 def _run(cfg: DictConfig, learned, seqs, refused, axes: int, out: str) -> Dict[str, Any]:
