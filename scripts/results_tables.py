@@ -28,6 +28,11 @@ Blocks (:data:`BLOCKS`):
     copied to ``docs/results/json/search_<dataset>.json``): per outer fold the choice of each seed
     beside the best classical filter with its defaults, raw and calibrated
     (:func:`tcn_ahrs.search.summary_markdown`, the run's own ``search.md`` summary).
+``device_check`` (docs/results.md)
+    The device check (no ground truth) on and off: ``tcn-ahrs evaluate data=<d> data.split=trainval
+    'baselines=[vqf,backbone,ecf,mahony]' device_check=true|false`` per dataset, the runs' mean AAE
+    per method collected by ``python scripts/results_tables.py --collect-device-check DIR`` (DIR
+    holding ``<d>_true/`` and ``<d>_false/``) into ``docs/results/json/device_check.json``.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -50,6 +55,7 @@ from tcn_ahrs import transfer as _transfer  # noqa: E402
 
 TRANSFER_JSON = "docs/results/json/transfer.json"
 DEPLOY_JSON = "docs/results/json/deploy.json"
+DEVICE_CHECK_JSON = "docs/results/json/device_check.json"
 
 
 # ------------------------------------------------------------------------------- renderings
@@ -187,6 +193,34 @@ def shipped_summary(result: Mapping[str, Any]) -> str:
                   "release on the same folds."]
     return "\n".join(lines) + "\n"
 
+def collect_device_check(runs: Path) -> Dict[str, Any]:
+    """{dataset: {"true"|"false": {method: mean AAE}, "recordings": n}} from the evaluate runs in
+    ``runs`` (``<dataset>_true/results.json``, ``<dataset>_false/results.json``)."""
+    out: Dict[str, Any] = {}
+    for f in sorted(Path(runs).glob("*_true/results.json")):
+        d = f.parent.name[:-len("_true")]
+        row: Dict[str, Any] = {}
+        for mode in ("true", "false"):
+            res = json.loads((Path(runs) / f"{d}_{mode}" / "results.json").read_text())["methods"]
+            # one column per method whatever the data's axes (vqf6d / vqf9d -> vqf)
+            row[mode] = {re.sub(r"[69]d$", "", m): sum(r["aae_deg"] for r in v["recordings"]) / len(v["recordings"])
+                         for m, v in res.items()}
+            row["recordings"] = len(next(iter(res.values()))["recordings"])
+        out[d] = row
+    return out
+
+
+def device_check_table(result: Mapping[str, Any]) -> str:
+    methods = list(next(iter(result.values()))["true"])
+    lines = ["| data (training recordings) | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for d, row in result.items():
+        cells = [f"{row['false'][m]:.2f} → **{row['true'][m]:.2f}**" for m in methods]
+        lines.append(f"| {d} ({row['recordings']}) | " + " | ".join(cells) + " |")
+    lines += ["", "Mean AAE in degrees (the yardstick), without → with the device check; `Learned AHRS` is the "
+                  "general model for the data's axes (general6 / general9)."]
+    return "\n".join(lines) + "\n"
+
+
 BLOCKS: Dict[str, Block] = {
     **{f"search_{d}": Block(f"docs/results/json/search_{d}.json", _search_summary, ("docs/results.md",))
        for d in SEARCHES},
@@ -194,6 +228,7 @@ BLOCKS: Dict[str, Block] = {
     "shipped": Block(TRANSFER_JSON, shipped_summary, ("README.md",)),
     "transfer_matrix": Block(TRANSFER_JSON, transfer_matrix, ("docs/results.md",)),
     "deploy": Block(DEPLOY_JSON, lambda result: _deploy_markdown(result), ("docs/deployment.md",)),
+    "device_check": Block(DEVICE_CHECK_JSON, device_check_table, ("docs/results.md",)),
 }
 
 
@@ -253,7 +288,10 @@ def update(repo: Path = REPO, check: bool = False) -> List[str]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--check", action="store_true", help="exit 1 if a block differs from its JSON; write nothing")
+    ap.add_argument("--collect-device-check", metavar="DIR", help=f"write {DEVICE_CHECK_JSON} from the evaluate runs in DIR")
     args = ap.parse_args(argv)
+    if args.collect_device_check:
+        (REPO / DEVICE_CHECK_JSON).write_text(json.dumps(collect_device_check(Path(args.collect_device_check)), indent=1))
     stale = update(REPO, check=args.check)
     for s in stale:
         print(("differs from its JSON: " if args.check else "rewritten: ") + s)

@@ -26,8 +26,9 @@ LAYERS = [
     {"sequence", "agreement", ""},
     {"datasets"},
     # the classical filters (torch reference + numba loops) and the backbone's tensor/numba readings;
-    # the static calibration (constant sensor errors fitted once, used by every family)
-    {"filters", "calibration"},
+    # the static calibration (constant sensor errors fitted once, used by every family) and the
+    # device check (the gyro bias at rest, read without ground truth)
+    {"filters", "calibration", "device_check"},
     # the learned model, its losses and the scores (AAE, ...); checkpoints (which build models);
     # navigation examples built on the filters' Kalman pieces
     {"model", "losses", "metrics", "checkpoint", "nav"},

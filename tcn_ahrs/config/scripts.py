@@ -78,6 +78,7 @@ class LodoSection:
     reselect: bool = False
     nested: str = "runs/nested"
     baselines: Optional[List[str]] = None
+    device_check: bool = True       # every method on the recordings with their rest bias subtracted (as evaluate)
 
 
 @dataclass
