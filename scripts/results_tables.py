@@ -33,6 +33,10 @@ Blocks (:data:`BLOCKS`):
     'baselines=[vqf,backbone,ecf,mahony]' device_check=true|false`` per dataset, the runs' mean AAE
     per method collected by ``python scripts/results_tables.py --collect-device-check DIR`` (DIR
     holding ``<d>_true/`` and ``<d>_false/``) into ``docs/results/json/device_check.json``.
+``lodo6`` / ``lodo9`` (docs/results.md)
+    Leave one dataset out, ``tcn-ahrs benchmark lodo`` (6 axes) and ``tcn-ahrs benchmark lodo
+    lodo.experiment=general9_res lodo.runs=runs/lodo9`` → ``runs/benchmark/lodo/lodo.json``, copied to
+    ``docs/results/json/lodo<axes>.json``, rendered by :func:`tcn_ahrs.lodo.markdown`.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -51,6 +55,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # this checkout's package, not another installed copy
     sys.path.insert(0, str(REPO))
 
+from tcn_ahrs import lodo as _lodo  # noqa: E402
 from tcn_ahrs import transfer as _transfer  # noqa: E402
 
 TRANSFER_JSON = "docs/results/json/transfer.json"
@@ -229,6 +234,8 @@ BLOCKS: Dict[str, Block] = {
     "transfer_matrix": Block(TRANSFER_JSON, transfer_matrix, ("docs/results.md",)),
     "deploy": Block(DEPLOY_JSON, lambda result: _deploy_markdown(result), ("docs/deployment.md",)),
     "device_check": Block(DEVICE_CHECK_JSON, device_check_table, ("docs/results.md",)),
+    **{f"lodo{a}": Block(f"docs/results/json/lodo{a}.json", lambda result: _lodo.markdown(result), ("docs/results.md",))
+       for a in (6, 9)},
 }
 
 

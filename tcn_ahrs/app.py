@@ -15,7 +15,7 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, List, Optional
+from typing import Callable, Dict, Iterator, List, Mapping, Optional
 
 EXIT_USER_ERROR = 2
 
@@ -96,6 +96,31 @@ def _free_sibling(out: Path) -> Path:
     while (out.parent / f"{out.name}-{k}").exists():
         k += 1
     return out.parent / f"{out.name}-{k}"
+
+
+def staged_files(targets: Mapping[str, Path], write: Callable[[str, Path], None],
+                 error: Callable[[str], Exception] = OSError) -> Dict[str, str]:
+    """The files of one output, all or none (the one write path of every file output: export
+    formats, checkpoints; a whole folder: :func:`staged_output`). ``write(key, tmp)`` writes each
+    target to a hidden name beside it, unique per process (``.<stem>.<pid>.partial<suffix>``; the
+    suffix kept: torch.export wants ``.pt2``); only when every one is written are they renamed
+    into place, so a failed or killed write leaves what was there. An OS error (a read-only folder,
+    a full disk) is raised as ``error("cannot write <path>: <why>")``; anything else as it came."""
+    paths = {k: Path(p) for k, p in targets.items()}
+    staged = {k: p.with_name(f".{p.stem}.{os.getpid()}.partial{p.suffix}") for k, p in paths.items()}
+    try:
+        for k, tmp in staged.items():
+            tmp.parent.mkdir(parents=True, exist_ok=True)
+            write(k, tmp)
+        for k, tmp in staged.items():
+            os.replace(tmp, paths[k])
+    except BaseException as e:
+        for tmp in staged.values():
+            tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError):
+            raise error(f"cannot write {', '.join(str(p) for p in paths.values())}: {e}") from None
+        raise
+    return {k: str(p) for k, p in paths.items()}
 
 
 @contextmanager

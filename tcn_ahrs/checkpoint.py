@@ -11,13 +11,13 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence
 
 import torch
 from pytorch_lightning.plugins.io import TorchCheckpointIO
 
+from .app import staged_files
 from .config.model import ModelConfig
 from .model.ahrs import LearnedAHRS
 
@@ -30,20 +30,14 @@ class CheckpointError(ValueError):
 
 
 def atomic_save(obj: Any, path) -> None:
-    """``torch.save`` to ``path`` atomically (temp file in the same folder + ``os.replace``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    """``torch.save`` to ``path`` atomically (:func:`~tcn_ahrs.app.staged_files`, flushed to disk)."""
+    def write(_, tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
             torch.save(obj, fh)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+
+    staged_files({"checkpoint": Path(path)}, write)
 
 
 def load_checkpoint(path, map_location="cpu") -> Dict[str, Any]:

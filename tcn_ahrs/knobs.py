@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from .estimators.registry import grid_combinations
+from .kernels.backbone_layout import BackboneParams
 from .sequence import ImuSequence
 from .tuning import score_points, tune_grid
 
@@ -20,7 +21,9 @@ from .tuning import score_points, tune_grid
 # inclination time constant, bias estimation in motion (VQF 6D on TUM VI's calibrated IMU: 7.2 deg
 # with it, 2.4 without), the bias bound (EuRoC's 4.5 deg/s bias lies beyond VQF's 2 deg/s) and
 # the heading time constant
-BACKBONE_GRID = {"tau_acc": [3.0, 10.0], "motion_bias": [1.0, 0.0], "bias_clip": [2.0, 8.0], "tau_mag": [9.0, 20.0]}
+_VQF = BackboneParams()  # VQF's defaults: one source, the first value of each knob
+BACKBONE_GRID = {"tau_acc": [_VQF.tau_acc, 10.0], "motion_bias": [_VQF.motion_bias, 0.0],
+                 "bias_clip": [_VQF.bias_clip, 8.0], "tau_mag": [_VQF.tau_mag, 20.0]}
 
 
 def with_gyro_offsets(sequences: Sequence[ImuSequence], std: float, seed: int = 0) -> List[ImuSequence]:

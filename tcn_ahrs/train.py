@@ -63,7 +63,28 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     ``train_seqs``/``val_seqs``/``test_seqs`` replace the data config's splits (tests).
     ``resume=true`` continues the run in ``run_dir`` with its saved configuration
     (:func:`resume_config`; ``overrides``: this command's ``key=value`` settings, by default the
-    Hydra job's). ``callbacks``: more Lightning callbacks (tests)."""
+    Hydra job's). ``callbacks``: more Lightning callbacks (tests).
+
+    The steps of a run, as docs/architecture describes it: set up (the checked configuration, the
+    model's, the data), tune (the backbone's knobs on the training recordings), build (the module
+    and its starting points), fit, select (the checkpoint that ships and its inference knobs),
+    evaluate (held-out recordings, beside the baselines)."""
+    cfg, run_dir, axes = _set_up(cfg, overrides)
+    model_cfg, init_model = _model_config(cfg, axes)
+    probe = LearnedAHRS.from_config(model_cfg)  # fail early on a bad model config
+    dm, supervision = _data(cfg, axes, probe, init_model, train_seqs, val_seqs)
+    model_cfg = _tune(cfg, axes, probe, dm, model_cfg, supervision)
+    module = _build_module(cfg, axes, dm, model_cfg, init_model, supervision)
+    monitor = str(cfg.train.monitor) if dm.val_store is not None else "train/loss_epoch"
+    trainer, fit_s = _fit(cfg, run_dir, axes, dm, module, model_cfg, monitor, callbacks)
+    result = _select(cfg, run_dir, dm, module, trainer, fit_s, monitor)
+    if trainer.is_global_zero:
+        result["results"] = _evaluate(cfg, run_dir, axes, result["best"], test_seqs)
+    return result
+
+
+def _set_up(cfg: DictConfig, overrides: Optional[List[str]]):
+    """The checked configuration (a resumed run's own), the seeds and threads, the run folder."""
     if cfg.get("resume") and not cfg.get("ckpt_path"):
         cfg = resume_config(cfg, run_dir_of(cfg), overrides if overrides is not None else command_line_overrides())
     check_config(cfg)
@@ -74,30 +95,37 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     pl.seed_everything(int(cfg.seed), workers=True)
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
-    axes = model_axes(cfg)
+    return cfg, run_dir, model_axes(cfg)
+
+
+def _model_config(cfg: DictConfig, axes: int):
+    """(the model's configuration, the model fine-tuning starts from or None)."""
     model_cfg = plain(cfg.model)
     model_cfg["axes"] = axes
-    init_model = None
-    if cfg.get("init"):
-        # fine-tuning: the architecture, knobs and weights are the checkpoint's; the model group is not used
-        from .checkpoint import model_from_checkpoint
+    if not cfg.get("init"):
+        return model_cfg, None
+    # fine-tuning: the architecture, knobs and weights are the checkpoint's; the model group is not used
+    from .checkpoint import model_from_checkpoint
 
-        shipped = Path(__file__).resolve().parents[1] / str(cfg.init)
-        if not Path(str(cfg.init)).is_file() and shipped.is_file():  # checkpoints/... from anywhere
-            with open_dict(cfg):
-                cfg.init = str(shipped)
-        init_model = model_from_checkpoint(str(cfg.init))
-        check_layout(load_checkpoint(str(cfg.init)), axes, str(cfg.init))
-        model_cfg = dict(checkpoint_meta(load_checkpoint(str(cfg.init)), str(cfg.init))["model"])
-        model_cfg["axes"] = axes
-        if cfg.train.get("init_gyro_bias", _T.init_gyro_bias) and model_cfg.get("residual") is not None:
-            # the bias state starts at this device's estimated bias (general models start at zero)
-            model_cfg["residual"] = {**dict(model_cfg["residual"]), "bias_prior": 1.0}
-        print(f"fine-tuning from {cfg.init} ({model_cfg.get('variant')}, {init_model.num_parameters():,} parameters)")
-    probe = LearnedAHRS.from_config(model_cfg)  # fail early on a bad model config
+    shipped = Path(__file__).resolve().parents[1] / str(cfg.init)
+    if not Path(str(cfg.init)).is_file() and shipped.is_file():  # checkpoints/... from anywhere
+        with open_dict(cfg):
+            cfg.init = str(shipped)
+    init_model = model_from_checkpoint(str(cfg.init))
+    check_layout(load_checkpoint(str(cfg.init)), axes, str(cfg.init))
+    model_cfg = dict(checkpoint_meta(load_checkpoint(str(cfg.init)), str(cfg.init))["model"])
+    model_cfg["axes"] = axes
+    if cfg.train.get("init_gyro_bias", _T.init_gyro_bias) and model_cfg.get("residual") is not None:
+        # the bias state starts at this device's estimated bias (general models start at zero)
+        model_cfg["residual"] = {**dict(model_cfg["residual"]), "bias_prior": 1.0}
+    print(f"fine-tuning from {cfg.init} ({model_cfg.get('variant')}, {init_model.num_parameters():,} parameters)")
+    return model_cfg, init_model
+
+
+def _data(cfg: DictConfig, axes: int, probe: LearnedAHRS, init_model, train_seqs, val_seqs):
+    """(the data module, prepared; the supervision: "gt" or "self")."""
     # the closed loop trains on chained chunks whose networks see receptive_field - 1 samples before
     margin = probe.receptive_field - 1 if probe.closed is not None else 0
-
     if cfg.train.get("all_recordings") and train_seqs is None:
         # the released model: every training recording, whole, with the fixed schedule; nothing
         # held out, so nothing is selected (the last epoch ships)
@@ -114,26 +142,42 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     dm.prepare()
     if supervision == "self":
         dm.val_seqs, dm.val_store = [], None  # nothing to validate against without ground truth
-    if probe.backbone is not None and cfg.train.get("tune_backbone", _T.tune_backbone) and supervision == "gt":
-        from .knobs import tune_backbone
+    return dm, supervision
 
-        # the backbone's knobs, chosen on the training recordings before any network trains
-        # (never on the held-out ones); stored in the model config, so the checkpoint keeps them
-        chosen, table = tune_backbone(dm.train_seqs, axes,
-                                      gyro_bias_std=float((cfg.train.get("augment") or {}).get("gyro_bias") or 0.0),
-                                      criterion=str(cfg.train.get("tune_criterion") or _T.tune_criterion))
-        res = dict(model_cfg.get("residual") or {})
-        res["backbone"] = {**dict(res.get("backbone") or {}), **chosen}
-        model_cfg["residual"] = res
-        print(f"backbone parameters chosen on the {len(dm.train_seqs)} training recordings: {chosen} "
-              f"(score {table[0]['score']:.2f}, {cfg.train.get('tune_criterion') or 'aae'}; VQF's defaults "
-              f"{next(r['score'] for r in table if r['params'].get('tau_acc') == 3.0 and r['params'].get('motion_bias') == 1.0 and r['params'].get('bias_clip') == 2.0 and r['params'].get('tau_mag', 9.0) == 9.0):.2f})")
+
+def _tune(cfg: DictConfig, axes: int, probe: LearnedAHRS, dm, model_cfg: Dict[str, Any], supervision: str):
+    """The backbone's knobs, chosen on the training recordings before any network trains (never
+    on the held-out ones), stored in the model config so that the checkpoint keeps them."""
+    if probe.backbone is None or not cfg.train.get("tune_backbone", _T.tune_backbone) or supervision != "gt":
+        return model_cfg
+    from .kernels.backbone_layout import BackboneParams
+    from .knobs import tune_backbone
+
+    criterion = str(cfg.train.get("tune_criterion") or _T.tune_criterion)
+    chosen, table = tune_backbone(dm.train_seqs, axes,
+                                  gyro_bias_std=float((cfg.train.get("augment") or {}).get("gyro_bias") or 0.0),
+                                  criterion=criterion)
+    res = dict(model_cfg.get("residual") or {})
+    res["backbone"] = {**dict(res.get("backbone") or {}), **chosen}
+    model_cfg["residual"] = res
+    vqf = BackboneParams()  # VQF's defaults, where the grid holds them
+    at_defaults = [r["score"] for r in table if all(float(v) == getattr(vqf, k) for k, v in r["params"].items())]
+    beside = f"; VQF's defaults {at_defaults[0]:.2f}" if at_defaults else ""
+    print(f"backbone parameters chosen on the {len(dm.train_seqs)} training recordings: {chosen} "
+          f"(score {table[0]['score']:.2f}, {criterion}{beside})")
+    return model_cfg
+
+
+def _build_module(cfg: DictConfig, axes: int, dm, model_cfg: Dict[str, Any], init_model, supervision: str):
+    """The LightningModule with its starting points: the fine-tuned model's weights, or the
+    input statistics; the gyro bias measured at rest (closed loop) or the backbone's bias state."""
+    ema = cfg.train.get("ema_decay", _T.ema_decay)
     module = AHRSModule(model_cfg, axes, lr=float(cfg.train.lr), weight_decay=float(cfg.train.weight_decay),
                         epochs=int(cfg.train.epochs), window=dm.window, loss_js=list(cfg.train.loss_js),
                         huber_delta=float(cfg.train.huber_delta), noise=plain(cfg.train.noise),
                         stream_chunks=int(cfg.train.get("stream_chunks") or _T.stream_chunks),
                         attitude_delta=float(cfg.train.get("attitude_delta") or _T.attitude_delta),
-                        ema_decay=float(cfg.train.get("ema_decay") or 0.0),  # null: off
+                        ema_decay=float(ema or 0.0),  # null or 0: off
                         augment=plain(cfg.train.get("augment") or {}), supervision=supervision,
                         data_name=str(cfg.data.name),
                         # the rate the model learned at (its TCN's time scale), for deployment
@@ -146,9 +190,9 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     else:
         mean, std = dm.statistics()
         module.model.calibration.set_input_stats(mean, std)
+    at_rest = cfg.train.get("init_gyro_bias", _T.init_gyro_bias)
     if module.model.closed is not None:
         module.model.closed.set_rate(module.hparams.rate_hz)
-        at_rest = cfg.train.get("init_gyro_bias", _T.init_gyro_bias)
         bias = rest_gyro_mean(module.model, dm.train_store) if at_rest else None
         if bias is not None:
             # the static gyro bias, measured where the training recordings are at rest, as the
@@ -157,15 +201,19 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
             module.model.calibration.set_gyro_bias(bias)
             print(f"gyro error term starts at the training recordings' mean gyro at rest: "
                   f"{[round(float(v), 5) for v in bias]} rad/s")
-    if module.model.backbone is not None and cfg.train.get("init_gyro_bias", _T.init_gyro_bias):
+    if module.model.backbone is not None and at_rest:
         from .knobs import backbone_bias
 
         b0 = backbone_bias(dm.train_seqs, axes, (model_cfg.get("residual") or {}).get("backbone") or {})
         module.model.backbone.bias_init.copy_(torch.as_tensor(b0))
         print(f"backbone bias state starts at the training recordings' estimated bias {np.round(b0, 5).tolist()} rad/s")
     module.reset_ema()
-    monitor = str(cfg.train.monitor) if dm.val_store is not None else "train/loss_epoch"
+    return module
 
+
+def _resume_point(cfg: DictConfig, run_dir: Path, axes: int) -> Optional[str]:
+    """The checkpoint a resumed (or ``ckpt_path=``) run continues from; the interrupted epoch's
+    metrics rows dropped (the resumed run logs them again)."""
     ckpt_path = cfg.get("ckpt_path")
     if cfg.get("resume") and not ckpt_path:
         ckpt_path = str(find_resume_checkpoint(run_dir))
@@ -174,14 +222,18 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         check_layout(ck, axes, ckpt_path)
         print(f"resuming from {ckpt_path} (epoch {ck.get('epoch')})")
         if cfg.get("resume") and ck.get("epoch") is not None:
-            # the interrupted epoch's rows are logged again by the resumed run: drop them
             dropped = trim_metrics(run_dir / "logs" / "metrics.csv", int(ck["epoch"]), int(ck.get("global_step") or 0))
             if dropped:
                 print(f"resume: dropped {dropped} metrics rows of the interrupted epoch {int(ck['epoch']) + 1}")
+    return ckpt_path
 
+
+def _fit(cfg: DictConfig, run_dir: Path, axes: int, dm, module, model_cfg: Dict[str, Any], monitor: str, callbacks):
+    """(the trainer after fitting, the fit's wall time in s); the configuration as started written
+    to the run folder (a resumed run keeps it and notes its own)."""
+    ckpt_path = _resume_point(cfg, run_dir, axes)
     trainer = build_trainer(cfg, run_dir, monitor, callbacks)
     if trainer.is_global_zero:
-        # the run's configuration as started; a resumed run keeps it (and notes its own)
         name = "config_resumed.yaml" if (cfg.get("resume") and (run_dir / "config_resolved.yaml").is_file()) \
             else "config_resolved.yaml"
         (run_dir / name).write_text(OmegaConf.to_yaml(cfg, resolve=True))
@@ -191,7 +243,13 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
               f"{len(dm.starts)} training windows of {dm.window} samples; run dir {run_dir}")
     t0 = time.perf_counter()
     trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path)
-    fit_s = time.perf_counter() - t0
+    return trainer, time.perf_counter() - t0
+
+
+def _select(cfg: DictConfig, run_dir: Path, dm, module, trainer, fit_s: float, monitor: str) -> Dict[str, Any]:
+    """The checkpoint that ships: the best validation epoch, or the fixed schedule's last (every
+    recording trained on; a residual model, with its inference knobs chosen on the validation
+    recordings, never on the reported ones). A time cap that cut the schedule is warned about."""
     ckpt_cb = trainer.checkpoint_callback
     best = ckpt_cb.best_model_path or str(run_dir / "checkpoints" / "last.ckpt")
     last = str(run_dir / "checkpoints" / "last.ckpt")
@@ -201,8 +259,6 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     if not trainer.is_global_zero:
         return result
     if module.model.backbone is not None:
-        # the residual model: the fixed schedule's last epoch ships, with its inference knobs
-        # chosen on the held-out (validation) recordings, never on the reported ones
         best = last
         result["best"] = last
         if cfg.train.get("select_knobs", _T.select_knobs) and dm.val_seqs:
@@ -216,29 +272,35 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
         print(f"WARNING: the time cap train.max_time={cfg.train.max_time} stopped training after "
               f"{done_epochs} of {int(cfg.train.epochs)} epochs: the model is under-trained. Real data: "
               "use its schedule (experiment=<name>_cl, no cap) or set train.max_time=null", file=sys.stderr)
-
-    ev = cfg.get("eval") or {}
-    if ev.get("enabled", _E.enabled):
-        from .evaluate import evaluate, print_table
-        from .estimators.learned import LearnedEstimator
-
-        if test_seqs is None:
-            from .datasets import load_split
-            test_seqs = load_split(cfg.data, str(ev.get("split", _E.split)))
-        test_seqs = [s for s in test_seqs if s.has_gt]
-        if not test_seqs:
-            warnings.warn(f"no held-out recordings with ground truth in split {ev.get('split', 'test')!r}; "
-                          "skipping the evaluation")
-            return result
-        from .estimators.registry import baseline_estimators
-
-        learned = LearnedEstimator(best, name=str(ev.get("name", _E.name)))
-        estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", _E.baselines)), axes)
-        res = evaluate(estimators, test_seqs, out_dir=run_dir / "eval", axes=axes,
-                       dataset=str(cfg.data.name), plots=bool(ev.get("plots", _E.plots)),
-                       trajectories=bool(ev.get("trajectories", _E.trajectories)))
-        print(f"\nHeld-out evaluation ({cfg.data.name}, split {ev.get('split', 'test')}, "
-              f"{len(test_seqs)} recordings; results in {run_dir / 'eval'}):")
-        print_table(res)
-        result["results"] = res
     return result
+
+
+def _evaluate(cfg: DictConfig, run_dir: Path, axes: int, best: str, test_seqs) -> Optional[Dict[str, Any]]:
+    """The shipped checkpoint on the held-out recordings beside Raw IMU and ``eval.baselines``,
+    through the evaluation runner; the table printed."""
+    ev = cfg.get("eval") or {}
+    if not ev.get("enabled", _E.enabled):
+        return None
+    from .evaluate import evaluate, print_table
+    from .evaluate.reports import print_summary
+    from .estimators.learned import LearnedEstimator
+    from .estimators.registry import baseline_estimators
+
+    if test_seqs is None:
+        from .datasets import load_split
+        test_seqs = load_split(cfg.data, str(ev.get("split", _E.split)))
+    test_seqs = [s for s in test_seqs if s.has_gt]
+    if not test_seqs:
+        warnings.warn(f"no held-out recordings with ground truth in split {ev.get('split', 'test')!r}; "
+                      "skipping the evaluation")
+        return None
+    learned = LearnedEstimator(best, name=str(ev.get("name", _E.name)))
+    estimators = [learned] + baseline_estimators(["raw"] + list(ev.get("baselines", _E.baselines)), axes)
+    res = evaluate(estimators, test_seqs, out_dir=run_dir / "eval", axes=axes,
+                   dataset=str(cfg.data.name), plots=bool(ev.get("plots", _E.plots)),
+                   trajectories=bool(ev.get("trajectories", _E.trajectories)))
+    print(f"\nHeld-out evaluation ({cfg.data.name}, split {ev.get('split', 'test')}, "
+          f"{len(test_seqs)} recordings; results in {run_dir / 'eval'}):")
+    print_table(res)
+    print_summary(res, learned.name)
+    return res

@@ -619,7 +619,8 @@ def test_fast_translation_keeps_the_up_test(tmp_path):
         c["acc"] = c["acc"] + np.stack([20.0 * np.sign(np.sin(2 * np.pi * 2.0 * t)), 0 * t, 0 * t], 1)
 
     seq = _load(_recording(tmp_path, shake))
-    assert seq.quat is not None
+    # loaded whole, the shaking kept (not refused, not filtered away)
+    assert seq.has_gt and seq.quat_valid.all() and float(np.abs(seq.accel[:, 0]).max()) > 15.0
 
 
 def test_twenty_second_clips_of_real_fast_translation_are_accepted(tmp_path):
@@ -648,7 +649,8 @@ def test_twenty_second_clips_of_real_fast_translation_are_accepted(tmp_path):
             p = tmp_path / f"{name}_{start}.csv"
             np.savetxt(p, np.column_stack([s.time[sl] - s.time[start], s.gyro[sl], s.accel[sl], s.mag[sl], s.quat[sl]]),
                        delimiter=",", header=HEADER, comments="", fmt="%.10g")
-            assert _load(p).quat is not None
+            clip = _load(p)
+            assert clip.quat_valid.all() and np.allclose(np.abs(np.sum(clip.quat * s.quat[sl], 1)), 1.0, atol=1e-6)
             loaded += 1
     assert loaded >= 3
 

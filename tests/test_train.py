@@ -195,6 +195,33 @@ def test_atomic_save_keeps_old_file_on_failure(tmp_path, monkeypatch):
     assert [f.name for f in tmp_path.iterdir()] == ["last.ckpt"]
 
 
+def test_staged_files_write_all_or_none(tmp_path):
+    """The one write path of every file output (export formats, checkpoints): a failure in any
+    file leaves every target as it was and no temporary behind; an OS error is named."""
+    from tcn_ahrs.app import staged_files
+
+    a, b = tmp_path / "m.pt", tmp_path / "m_streaming.pt"
+    a.write_text("old a")
+
+    def failing(key, tmp):
+        tmp.write_text("new " + key)
+        if key == "b":
+            raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        staged_files({"a": a, "b": b}, failing)
+    assert a.read_text() == "old a" and not b.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["m.pt"]
+    assert staged_files({"a": a, "b": b}, lambda k, tmp: tmp.write_text("new " + k)) == {"a": str(a), "b": str(b)}
+    assert (a.read_text(), b.read_text()) == ("new a", "new b") and len(list(tmp_path.iterdir())) == 2
+
+    def denied(key, tmp):
+        raise PermissionError("read-only")
+
+    with pytest.raises(ValueError, match=r"cannot write .*m.pt.*read-only"):
+        staged_files({"a": a}, denied, ValueError)
+    assert a.read_text() == "new a"
+
+
 class _Arbitrary:
     pass
 

@@ -74,7 +74,8 @@ class EvalSection:
     """``eval:``: the held-out evaluation after training."""
     enabled: bool = True
     split: str = "test"
-    baselines: List[str] = field(default_factory=lambda: ["ecf"])  # raw is always there
+    # raw is always there; VQF's structure and every classical filter, the best one marked
+    baselines: List[str] = field(default_factory=lambda: ["backbone", "vqf", "ecf", "mahony", "madgwick", "eskf"])
     name: str = "Learned AHRS"
     plots: bool = True
     trajectories: bool = True

@@ -44,6 +44,9 @@ from .. import so3
 from ..conventions import STATE_DTYPE
 from ..filters import ecf, eskf, madgwick, mahony
 from ..filters.common import heading_ref_for, magnetic_from_nav, triad_quat
+from ..filters.ecf import ECFParams
+from ..filters.eskf import ESEKFParams, RobustESEKFParams
+from ..filters.mahony import MahonyParams
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
 from .registry import register
@@ -210,18 +213,11 @@ class ClassicalEstimator:
 
 @register("ecf", "classical")
 @dataclass
-class ClosedLoopECF(ClassicalEstimator):
+class ClosedLoopECF(ECFParams, ClassicalEstimator):
     """Closed-loop Extended Complementary Filter, paper Section 2 (Eqs. 4-8); see
     :func:`tcn_ahrs.filters.ecf`. Tuned on training recordings: ``k_norm`` and ``a_min``
     (``k_init``/``t_init`` only matter during the first seconds; ``m_min``/``m_max`` bracket the
     local field). Signals: ``acc_used``, ``mag_used`` (Eq. 7 decisions), ``gain`` (Eq. 8)."""
-
-    k_norm: float = 0.5  # 1/s
-    k_init: float = 10.0  # 1/s
-    t_init: float = 3.0  # s
-    a_min: float = 1.0  # m/s^2
-    m_min: float = 20.0  # uT
-    m_max: float = 70.0  # uT
 
     method: ClassVar[str] = "ecf"
     tunable: ClassVar[Sequence[str]] = ("k_norm", "a_min")
@@ -234,14 +230,10 @@ class ClosedLoopECF(ClassicalEstimator):
 
 @register("mahony", "classical")
 @dataclass
-class Mahony(ClassicalEstimator):
+class Mahony(MahonyParams, ClassicalEstimator):
     """Mahony explicit complementary filter with integral gyro-bias term; see
     :func:`tcn_ahrs.filters.mahony` (``compat=True`` reproduces ``ahrs.filters.Mahony``).
     Tuned: ``k_p``, ``k_i``. Signals: ``gyro_bias`` (N, 3) rad/s."""
-
-    k_p: float = 1.0  # 1/s
-    k_i: float = 0.3  # 1/s^2
-    compat: bool = False
 
     method: ClassVar[str] = "mahony"
     tunable: ClassVar[Sequence[str]] = ("k_p", "k_i")
@@ -270,17 +262,10 @@ class Madgwick(ClassicalEstimator):
 
 @register("eskf", "classical")
 @dataclass
-class ESEKF(ClassicalEstimator):
+class ESEKF(ESEKFParams, ClassicalEstimator):
     """Error-state EKF (attitude + gyro bias); see :func:`tcn_ahrs.filters.eskf`.
     Tuned: ``accel_noise``, ``mag_noise`` (gyro noise and bias walk come from the sensor's
     datasheet / Allan variance). Signals: ``gyro_bias`` (N, 3) rad/s, ``att_std`` (N, 3) rad."""
-
-    gyro_noise: float = 1e-3  # rad/s/sqrt(Hz)
-    bias_walk: float = 1e-5  # rad/s^2/sqrt(Hz)
-    accel_noise: float = 0.05  # m/s^2/sqrt(Hz)
-    mag_noise: float = 0.05  # rad/sqrt(Hz)
-    init_att_std: float = 0.1  # rad
-    init_bias_std: float = 0.01  # rad/s
 
     method: ClassVar[str] = "eskf"
     tunable: ClassVar[Sequence[str]] = ("accel_noise", "mag_noise")
@@ -293,20 +278,12 @@ class ESEKF(ClassicalEstimator):
 
 @register("robust_eskf", "classical")
 @dataclass
-class RobustESEKF(ESEKF):
+class RobustESEKF(RobustESEKFParams, ESEKF):
     """Adaptive-robust ES-EKF: Mahalanobis-gated observations (R inflation) and fading factor
     (P inflation), after the ARCKF paper's Eqs. 39-42 / Algorithm 1; see
     :func:`tcn_ahrs.filters.eskf`. Tuned: ``accel_noise``, ``mag_noise`` (``alpha`` and the
     plausibility tolerances have physical defaults). Signals: ``gyro_bias``, ``att_std``,
     ``acc_gated``, ``mag_gated`` (N,) bool, ``mahalanobis_acc``, ``mahalanobis_mag``, ``fading`` (N,)."""
-
-    alpha: float = 0.001  # significance level of the chi-square tests
-    acc_norm_tol: float = 0.25  # m/s^2
-    mag_norm_tol: float = 3.0  # uT
-    dip_tol: float = 0.05  # rad
-    max_fading: float = 10.0
-    n_iter: int = 3
-    plausible_window: float = 0.2  # s
 
     method: ClassVar[str] = "robust_eskf"
 

@@ -147,6 +147,20 @@ def print_table(results: dict, metric_keys: Optional[Iterable[str]] = None, file
                   file=file)
 
 
+def print_summary(results: dict, learned: str, file=None) -> None:
+    """One line per method, its mean AAE and inclination (degrees), the best classical filter
+    (the lowest mean AAE among the methods other than ``learned`` and Raw IMU) marked."""
+    file = file or sys.stdout
+    means = {m: r["mean"] for m, r in results["methods"].items()}
+    classical = [m for m in means if m != learned and not m.startswith("Raw") and means[m].get("aae_deg") is not None]
+    best = min(classical, key=lambda m: means[m]["aae_deg"]) if classical else None
+    w = max(len(m) for m in means)
+    print(f"\n{'method':<{w}}  {'AAE':>7}  {'incl.':>7}", file=file)
+    for m, v in means.items():
+        mark = "  <- best classical" if m == best else ("  <- learned" if m == learned else "")
+        print(f"{m:<{w}}  {_fmt(v.get('aae_deg')):>7}  {_fmt(v.get('inclination_deg')):>7}{mark}", file=file)
+
+
 # ---------------------------------------------------------------------------
 # files: TUM trajectories, plots
 # ---------------------------------------------------------------------------

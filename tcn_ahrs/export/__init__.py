@@ -64,6 +64,7 @@ import torch
 from torch import nn
 
 from .. import __version__
+from ..app import staged_files
 from ..conventions import NETWORK_DTYPE
 from .closed_loop import ClosedLoopBatch, ClosedLoopStreaming
 from .fused import hamilton_table, fuse_model, quat_cumprod, quat_integrate
@@ -172,14 +173,10 @@ def _export(cls, model: nn.Module, path, meta, net_dtype: torch.dtype, mode: str
     else:
         module = cls(fuse_model(model), md, net_dtype).eval()
     scripted = _script(module)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
     try:
-        torch.jit.save(scripted, str(tmp), _extra_files={"metadata.json": scripted.metadata()})
-        tmp.replace(path)
-    except (RuntimeError, OSError) as e:  # a read-only folder, a full disk
-        tmp.unlink(missing_ok=True)
+        staged_files({"module": Path(path)}, lambda _, tmp: torch.jit.save(
+            scripted, str(tmp), _extra_files={"metadata.json": scripted.metadata()}), _export_error)
+    except RuntimeError as e:  # torch's writer reports a read-only folder or a full disk this way
         raise ExportError(f"export: cannot write {path}: {e}") from None
     return scripted
 
@@ -237,17 +234,12 @@ def export_checkpoint(ckpt_path, out_path, mode: str = "both", rate_hz: Optional
     if not os.access(folder, os.W_OK):
         raise ExportError(f"export: cannot write into {folder} (read-only?): choose another out=")
     model, meta = checkpoint_export_meta(ckpt_path, ck_meta, rate_hz)
-    staged = {k: t.with_name(f".{t.name}.partial") for k, t in targets.items()}
-    try:
-        for kind, tmp in staged.items():
-            (export_batch if kind == "batch" else export_streaming)(model, tmp, meta, net_dtype)
-    except BaseException:
-        for tmp in staged.values():
-            tmp.unlink(missing_ok=True)
-        raise
-    for kind, tmp in staged.items():
-        os.replace(tmp, targets[kind])
-    return {k: str(t) for k, t in targets.items()}
+    return staged_files(targets, lambda kind, tmp: (export_batch if kind == "batch" else export_streaming)(
+        model, tmp, meta, net_dtype), _export_error)
+
+
+def _export_error(message: str) -> ExportError:
+    return ExportError(f"export: {message}")
 
 
 def checkpoint_export_meta(ckpt_path, ck_meta: Mapping[str, Any], rate_hz: Optional[float] = None):

@@ -403,20 +403,10 @@ def staged_write(path, write) -> str:
     failed export leaves nothing)."""
     from pathlib import Path
 
+    from ..app import staged_files
     from .inputs import ExportError
 
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")  # torch.export.save wants .pt2
-    try:
-        write(tmp)
-        tmp.replace(path)
-    except OSError as e:
-        tmp.unlink(missing_ok=True)
-        raise ExportError(f"export: cannot write {path}: {e}") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return str(path)
+    return staged_files({"file": Path(path)}, lambda _, tmp: write(tmp), lambda m: ExportError(f"export: {m}"))["file"]
 
 
 class CheckedBatch:

@@ -22,6 +22,7 @@ for running in another heading reference.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Dict, Optional
 
 import torch
@@ -33,18 +34,34 @@ from .compiled import ecf_loop, use_compiled
 from .common import converter_like, elapsed, field_gates, flatten_batch, gain_schedule, normalize, unflatten
 
 
+@dataclass
+class ECFParams:
+    """The ECF's parameters, meaning, unit and default once: read by :func:`ecf`, the estimator
+    registry (:class:`tcn_ahrs.estimators.classical.ECF`) and its tuning grid."""
+
+    k_norm: float = 0.5  # 1/s, the steady-state correction gain (Eq. 8)
+    k_init: float = 10.0  # 1/s, the gain at the start, decaying to k_norm over t_init
+    t_init: float = 3.0  # s
+    a_min: float = 1.0  # m/s², the accelerometer used while | |a| - g | < a_min (Eq. 7)
+    m_min: float = 20.0  # µT, the magnetometer used while its norm lies in [m_min, m_max]
+    m_max: float = 70.0  # µT
+
+
+_ECF = ECFParams()
+
+
 def ecf(
     gyro: Tensor,
     accel: Tensor,
     dt: Tensor,
     q0: Tensor,
     mag: Optional[Tensor] = None,
-    k_norm=0.5,
-    k_init=10.0,
-    t_init=3.0,
-    a_min=1.0,
-    m_min=20.0,
-    m_max=70.0,
+    k_norm=_ECF.k_norm,
+    k_init=_ECF.k_init,
+    t_init=_ECF.t_init,
+    a_min=_ECF.a_min,
+    m_min=_ECF.m_min,
+    m_max=_ECF.m_max,
     gravity: float = GRAVITY,
     backend: str = "auto",
 ) -> Dict[str, Tensor]:

@@ -59,6 +59,7 @@ Signals: ``acc_gated``/``mag_gated`` (R inflated), ``mahalanobis_acc``/``mahalan
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Dict, Optional, Tuple
 
 import torch
@@ -133,30 +134,59 @@ def _observe(rot, bias, P, r, H, R, plausible, thr: float, robust: bool, n_iter:
     return rot, bias, P, gamma, lam_p, lam_r
 
 
+@dataclass
+class ESEKFParams:
+    """The ES-EKF's parameters, meaning, unit and default once: read by :func:`eskf` and the
+    estimator registry (:class:`tcn_ahrs.estimators.classical.ESEKF`)."""
+
+    gyro_noise: float = 1e-3  # rad/s/sqrt(Hz), gyro white-noise density
+    bias_walk: float = 1e-5  # rad/s²/sqrt(Hz), gyro bias random-walk density
+    accel_noise: float = 0.05  # m/s²/sqrt(Hz), accelerometer measurement noise density
+    mag_noise: float = 0.05  # rad/sqrt(Hz), the field direction's noise
+    init_att_std: float = 0.1  # rad
+    init_bias_std: float = 0.01  # rad/s
+
+
+@dataclass
+class RobustESEKFParams(ESEKFParams):
+    """The adaptive-robust ES-EKF's own parameters (ARCKF paper, Eqs. 39-42)."""
+
+    alpha: float = 0.001  # significance level of the chi-square tests
+    acc_norm_tol: float = 0.25  # m/s²
+    mag_norm_tol: float = 3.0  # µT
+    dip_tol: float = 0.05  # rad
+    max_fading: float = 10.0
+    n_iter: int = 3
+    plausible_window: float = 0.2  # s
+
+
+_ESKF = RobustESEKFParams()
+
+
 def eskf(
     gyro: Tensor,
     accel: Tensor,
     dt: Tensor,
     q0: Tensor,
     mag: Optional[Tensor] = None,
-    gyro_noise=1e-3,
-    bias_walk=1e-5,
-    accel_noise=0.05,
-    mag_noise=0.05,
-    init_att_std=0.1,
-    init_bias_std=0.01,
+    gyro_noise=_ESKF.gyro_noise,
+    bias_walk=_ESKF.bias_walk,
+    accel_noise=_ESKF.accel_noise,
+    mag_noise=_ESKF.mag_noise,
+    init_att_std=_ESKF.init_att_std,
+    init_bias_std=_ESKF.init_bias_std,
     bias0: Optional[Tensor] = None,
     gravity: float = GRAVITY,
     robust: bool = False,
-    alpha: float = 0.001,
-    acc_norm_tol=0.25,
-    mag_norm_tol=3.0,
-    dip_tol=0.05,
+    alpha: float = _ESKF.alpha,
+    acc_norm_tol=_ESKF.acc_norm_tol,
+    mag_norm_tol=_ESKF.mag_norm_tol,
+    dip_tol=_ESKF.dip_tol,
     mag_norm_ref=None,
     dip_ref=None,
-    max_fading: float = 10.0,
-    n_iter: int = 3,
-    plausible_window: float = 0.2,
+    max_fading: float = _ESKF.max_fading,
+    n_iter: int = _ESKF.n_iter,
+    plausible_window: float = _ESKF.plausible_window,
     backend: str = "auto",
 ) -> Dict[str, Tensor]:
     """Run the (adaptive-robust) error-state EKF.

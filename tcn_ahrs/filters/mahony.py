@@ -20,6 +20,7 @@ Quirk of ahrs not reproduced: it skips a sample whose gyro reading is exactly ze
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Dict, Optional
 
 import torch
@@ -30,16 +31,29 @@ from .compiled import mahony_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, unflatten
 
 
+@dataclass
+class MahonyParams:
+    """Mahony's parameters, meaning, unit and default once: read by :func:`mahony` and the
+    estimator registry (:class:`tcn_ahrs.estimators.classical.Mahony`)."""
+
+    k_p: float = 1.0  # 1/s, the proportional gain
+    k_i: float = 0.3  # 1/s², the integral (gyro bias) gain
+    compat: bool = False  # True: ``ahrs.filters.Mahony``'s update order, for the cross-check
+
+
+_MAHONY = MahonyParams()
+
+
 def mahony(
     gyro: Tensor,
     accel: Tensor,
     dt: Tensor,
     q0: Tensor,
     mag: Optional[Tensor] = None,
-    k_p=1.0,
-    k_i=0.3,
+    k_p=_MAHONY.k_p,
+    k_i=_MAHONY.k_i,
     bias0: Optional[Tensor] = None,
-    compat: bool = False,
+    compat: bool = _MAHONY.compat,
     backend: str = "auto",
 ) -> Dict[str, Tensor]:
     """Run the Mahony filter.

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from ...app import staged_files
 from ...conventions import INPUT_LIMITS, MAX_DT
 from ...kernels import backbone as K
 from ..inputs import ExportError
@@ -194,18 +195,7 @@ def export_c(ckpt_path, out_dir, prefix: Optional[str] = None, overwrite: bool =
     if existing and not overwrite:
         raise ExportError(f"export: {', '.join(existing)} already exist(s): choose another out= or pass overwrite=true")
     gen = generate_c(model_from_checkpoint(ckpt_path), name)
-    out.mkdir(parents=True, exist_ok=True)
-    staged = {k: p_.with_name(f".{p_.name}.partial") for k, p_ in paths.items()}
-    try:
-        for k, tmp in staged.items():
-            tmp.write_text(gen[k])
-    except BaseException:
-        for tmp in staged.values():
-            tmp.unlink(missing_ok=True)
-        raise
-    for k, tmp in staged.items():
-        os.replace(tmp, paths[k])
-    return {k: str(v) for k, v in paths.items()}
+    return staged_files(paths, lambda k, tmp: tmp.write_text(gen[k]), lambda m: ExportError(f"export: {m}"))
 
 
 def compile_c(c_path, out_so, real: str = "float", cc: Optional[str] = None, flags: Sequence[str] = ()) -> str:
