@@ -51,7 +51,7 @@ and ``tests/test_export_closed_loop.py``. ``net_dtype=bfloat16`` (batch module o
 Exported modules are frozen (:func:`torch.jit.freeze`, public methods kept): flags and
 weights become constants. The streaming step folds the input normalisation into the first
 layer and computes GELU as ``u (1 + erf(u))`` on sqrt(1/2)-scaled pre-activations (see
-:meth:`StreamingAHRS._gelu_scaled`), identical math with fewer TorchScript ops.
+:func:`~tcn_ahrs.export.fused.gelu_scaled`), identical math with fewer TorchScript ops.
 """
 import hashlib
 import json

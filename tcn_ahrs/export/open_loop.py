@@ -10,7 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .fused import hamilton_table, rows_up_east, acc_error_rows, mag_error_rows, quat_integrate, ring_convolutions
+from .fused import gelu_scaled, hamilton_table, rows_up_east, acc_error_rows, mag_error_rows, quat_integrate, ring_convolutions
+from ..kernels.quat import quat_step
 from ..model.closed_loop_step import float64_tensor
 from .inputs import ExportError, InputChecks
 
@@ -228,7 +229,7 @@ class StreamingAHRS(BatchAHRS):
             # (G, k*C_in, C_out) with the taps' (tap, channel) order: the per-sample product is a
             # (1, k*C_in) row times this matrix (a batched row-vector product is far faster
             # on CPU than a batched matrix times a one-column matrix)
-            # GELU as 2 ops (see _gelu_scaled): outputs scaled by 1/sqrt(2), inputs by the
+            # GELU as 2 ops (see fused.gelu_scaled): outputs scaled by 1/sqrt(2), inputs by the
             # same factor again (the previous layer emits sqrt(2) * GELU), in float64
             w_f, b_f = fused_hidden_f64[len(self.spans) - 1]
             self.step_weights.append((w_f.reshape(g, c_out, c_in, k).permute(0, 3, 2, 1).reshape(g, k * c_in, c_out) * 0.5)
@@ -275,24 +276,9 @@ class StreamingAHRS(BatchAHRS):
     # ---------------------------------------------------------- scalar SO(3) helpers
     @staticmethod
     def _quat_step(q: List[float], wx: float, wy: float, wz: float, dt: float) -> List[float]:
-        """``q ⊗ exp(ω dt)``, renormalised (same Taylor threshold as :func:`so3.quat_exp`)."""
-        px, py, pz = wx * dt, wy * dt, wz * dt
-        t2 = px * px + py * py + pz * pz
-        if t2 < 1e-6:
-            hs = 0.5 - t2 / 48.0 + t2 * t2 / 3840.0
-            ew = 1.0 - t2 / 8.0 + t2 * t2 / 384.0
-        else:
-            th = math.sqrt(t2)
-            hs = math.sin(0.5 * th) / th
-            ew = math.cos(0.5 * th)
-        ex, ey, ez = hs * px, hs * py, hs * pz
-        w, x, y, z = q[0], q[1], q[2], q[3]
-        rw = w * ew - x * ex - y * ey - z * ez
-        rx = w * ex + x * ew + y * ez - z * ey
-        ry = w * ey - x * ez + y * ew + z * ex
-        rz = w * ez + x * ey - y * ex + z * ew
-        n = math.sqrt(rw * rw + rx * rx + ry * ry + rz * rz)
-        return [rw / n, rx / n, ry / n, rz / n]
+        """``q ⊗ exp(ω dt)``, renormalised (:func:`tcn_ahrs.kernels.quat.quat_step`)."""
+        w, x, y, z = quat_step(q[0], q[1], q[2], q[3], wx * dt, wy * dt, wz * dt)
+        return [w, x, y, z]
 
     def _corr(self, q: List[float], cal: List[float], raw: List[float]) -> List[float]:
         """γ ⊙ e_acc + η ⊙ e_mag (Eqs. 22-24) against C̃ = C(q), scalar float64 arithmetic."""
@@ -321,13 +307,6 @@ class StreamingAHRS(BatchAHRS):
         return [cx, cy, cz]
 
     # ----------------------------------------------------------------------- step
-    @staticmethod
-    def _gelu_scaled(u: Tensor) -> Tensor:
-        """``sqrt(2) * GELU(sqrt(2) u) = u (1 + erf(u))``: exact GELU in 2 ops (``F.gelu`` costs
-        ~8 us per call on these tiny tensors, erf + addcmul ~2 us); the sqrt(2) factors are
-        folded into the adjacent layers' weights."""
-        return torch.addcmul(u, u, torch.erf(u))
-
     def _errors_step(self, sample: Tensor) -> Tensor:
         """Hidden features of the last layer, flat (G*C_last,) float64, for the newest sample
         (advances the ring buffers). Only called when the model has error TCNs."""
@@ -337,14 +316,14 @@ class StreamingAHRS(BatchAHRS):
         buf.select(0, p).copy_(sample)  # (copy_ converts the dtype)
         taps = buf.index_select(0, self.tap_index[self.tap_offsets[0] + p]).view(1, -1)
         g = self.groups
-        h = self._gelu_scaled(torch.addmm(self.first_bias_step, taps, self.first_weight_t)).view(g, 1, -1)
+        h = gelu_scaled(torch.addmm(self.first_bias_step, taps, self.first_weight_t)).view(g, 1, -1)
         for i in range(len(self.ring_buffers)):
             span = self.spans[i]
             p = self.t % span
             buf = self.ring_buffers[i]
             buf.narrow(1, p, 1).copy_(h)
             taps = buf.index_select(1, self.tap_index[self.tap_offsets[i + 1] + p]).view(g, 1, -1)
-            h = self._gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
+            h = gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
         return h.view(-1).to(torch.float64)
 
     def _errors_chunk(self, samples: Tensor) -> Tensor:

@@ -39,6 +39,7 @@ from torch import Tensor, nn
 from ..kernels import backbone as K
 from ..conventions import INPUT_LIMITS, MAX_DT
 from ..kernels.ops import load_kernel, torch_ops
+from .fused import gelu_scaled
 
 F64 = torch.float64
 
@@ -132,8 +133,6 @@ class ResidualStep(nn.Module):
         return torch.cat([head, torch.zeros(self.state_size - head.shape[0], dtype=F64)])
 
     # ---------------------------------------------------------------- networks
-    def _gelu_scaled(self, u: Tensor) -> Tensor:  # = StreamingAHRS._gelu_scaled
-        return torch.addcmul(u, u, torch.erf(u))
 
     def _networks(self, sample: Tensor, state: Tensor) -> Tuple[Tensor, List[Tensor]]:
         """Head output v = −[gyro net pre-tanh (3), trust logits] (float64) and the new rings."""
@@ -141,13 +140,13 @@ class ResidualStep(nn.Module):
         ring = torch.cat([ring[1:], sample.to(self.net_dtype).view(1, -1)], 0)
         rings = [ring]
         taps = ring[0::self.first_dilation].reshape(1, -1)
-        h = self._gelu_scaled(torch.addmm(self.first_bias_step, taps, self.first_weight_t)).view(self.groups, 1, -1)
+        h = gelu_scaled(torch.addmm(self.first_bias_step, taps, self.first_weight_t)).view(self.groups, 1, -1)
         for i in range(len(self.dilations)):
             ring = self._part(state, f"ring{i + 1}").to(self.net_dtype)
             ring = torch.cat([ring[:, 1:], h], 1)
             rings.append(ring)
             taps = ring[:, 0::self.dilations[i]].reshape(self.groups, 1, -1)
-            h = self._gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
+            h = gelu_scaled(torch.baddbmm(self.step_biases[i], taps, self.step_weights[i]))
         x = sample.to(F64)
         feats = h.reshape(-1).to(F64)
         v = torch.addmv(torch.addmv(self.head_bias, self.head_weight, feats), self.head_matrix, x, beta=-1.0)

@@ -66,6 +66,22 @@ def qnormalize(w: float, x: float, y: float, z: float) -> Tuple[float, float, fl
     return w / n, x / n, y / n, z / n
 
 
+def quat_step(w: float, x: float, y: float, z: float, px: float, py: float, pz: float
+              ) -> Tuple[float, float, float, float]:
+    """``q ⊗ exp(φ)`` for the rotation vector φ = (px, py, pz) (ω dt), renormalised; below
+    |φ|² = 1e-6 the half-angle series of :func:`tcn_ahrs.so3.quat_exp`."""
+    t2 = px * px + py * py + pz * pz
+    if t2 < 1e-6:
+        hs = 0.5 - t2 / 48.0 + t2 * t2 / 3840.0
+        cw = 1.0 - t2 / 8.0 + t2 * t2 / 384.0
+    else:
+        t = math.sqrt(t2)
+        hs = math.sin(0.5 * t) / t
+        cw = math.cos(0.5 * t)
+    rw, rx, ry, rz = qmul(w, x, y, z, cw, hs * px, hs * py, hs * pz)
+    return qnormalize(rw, rx, ry, rz)
+
+
 def rodrigues(px: float, py: float, pz: float
               ) -> Tuple[float, float, float, float, float, float, float, float, float]:
     """:func:`tcn_ahrs.so3.exp` of the rotation vector (px, py, pz), ``E = I + A K + C K^2`` (the
