@@ -224,8 +224,28 @@ def eskf(
     """
     T = converter_like(gyro)
     gyro, accel, dt, q0, mag = T(gyro), T(accel), T(dt), T(q0), T(mag)
-    dtype, dev = gyro.dtype, gyro.device
     bias0 = T(torch.zeros(3) if bias0 is None else bias0)
+    names = ["gyro_noise", "bias_walk", "accel_noise", "mag_noise", "init_att_std", "init_bias_std",
+             "acc_norm_tol", "mag_norm_tol", "dip_tol"]
+    vals = [gyro_noise, bias_walk, accel_noise, mag_noise, init_att_std, init_bias_std,
+            acc_norm_tol, mag_norm_tol, dip_tol]
+    x, batch = _prepare(T, gyro, accel, dt, q0, mag, bias0, dict(zip(names, vals)), mag_norm_ref, dip_ref, gravity,
+                        alpha, plausible_window)
+    if use_compiled(backend, x.gyro, x.accel, x.dt, x.q0, x.mag, x.b, *x.p.values()):
+        res = _run_compiled(x, robust, n_iter, max_fading)
+    else:
+        res = _run_torch(x, robust, n_iter, max_fading)
+    return {k: unflatten(v, batch) for k, v in res.items()}
+
+
+def _prepare(T, gyro, accel, dt, q0, mag, bias0, params, mag_norm_ref, dip_ref, gravity, alpha, plausible_window):
+    """The filter's inputs flattened to one batch dimension, with everything that does not depend
+    on the state computed up front: the per-sample measurement variances, the observations'
+    plausibility (the robust filter's tests), the chi-square thresholds, the initial covariance
+    and attitude. Returns (a namespace of them, the batch shape for :func:`unflatten`)."""
+    from types import SimpleNamespace
+
+    dtype, dev = gyro.dtype, gyro.device
     a_norm_all = torch.linalg.vector_norm(accel, dim=-1)
     if mag is not None:
         m_norm_all = torch.linalg.vector_norm(mag, dim=-1)
@@ -235,74 +255,80 @@ def eskf(
     else:
         m_norm_all = dip_all = None
         mag_norm_ref = dip_ref = torch.zeros((), dtype=dtype, device=dev)
-    names = ["gyro_noise", "bias_walk", "accel_noise", "mag_noise", "init_att_std", "init_bias_std",
-             "acc_norm_tol", "mag_norm_tol", "dip_tol"]
-    vals = [gyro_noise, bias_walk, accel_noise, mag_noise, init_att_std, init_bias_std,
-            acc_norm_tol, mag_norm_tol, dip_tol]
     batch, flat = flatten_batch(
         [(gyro, 2), (accel, 2), (dt, 1), (q0, 1), (mag, 2), (bias0, 1), (a_norm_all, 1),
          (m_norm_all, 1), (dip_all, 1), (T(mag_norm_ref), 0), (T(dip_ref), 0)]
-        + [(T(v), 0) for v in vals]
+        + [(T(v), 0) for v in params.values()]
     )
     (gyro, accel, dt, q0, mag, b, a_norm_all, m_norm_all, dip_all, mag_norm_ref, dip_ref) = flat[:11]
-    p_ = dict(zip(names, flat[11:]))
+    p_ = dict(zip(params, flat[11:]))
     B, n = gyro.shape[0], gyro.shape[1]
-    eye3 = torch.eye(3, dtype=dtype, device=gyro.device).expand(B, 3, 3)
-
-    a_hat = normalize(accel)
+    x = SimpleNamespace(gyro=gyro, accel=accel, dt=dt, q0=q0, mag=mag, p=p_, B=B, n=n, dtype=dtype)
+    x.a_hat = normalize(accel)
     var_g = p_["gyro_noise"] ** 2
     var_bw = p_["bias_walk"] ** 2
     # Per-sample measurement variances (noise density^2 / dt), vectorised up front.
-    var_acc = (p_["accel_noise"][:, None] / gravity) ** 2 / dt
+    x.var_acc = (p_["accel_noise"][:, None] / gravity) ** 2 / dt
     # Robustness factors (state-independent plausibility of each observation), Eqs. 35-37 analogue.
     # An observation is plausible only if the test held over the last ``plausible_window`` seconds:
     # during vigorous motion |a| crosses g now and then while its direction is far from gravity,
     # and such a crossing must not be read as "observation fine, state abnormal" (fading).
     win = max(1, int(round(plausible_window / float(dt[:, 1:].median())))) if n > 1 else 1
-    acc_plaus = rolling_max((a_norm_all - gravity).abs() / p_["acc_norm_tol"][:, None], win) < 1.0
+    x.acc_plaus = rolling_max((a_norm_all - gravity).abs() / p_["acc_norm_tol"][:, None], win) < 1.0
+    x.var_mag = x.mag_plaus = None
     if mag is not None:
-        var_mag = p_["mag_noise"][:, None] ** 2 / dt
+        x.var_mag = p_["mag_noise"][:, None] ** 2 / dt
         mag_dev = torch.maximum((m_norm_all - mag_norm_ref[:, None]).abs() / p_["mag_norm_tol"][:, None],
                                 (dip_all - dip_ref[:, None]).abs() / p_["dip_tol"][:, None])
-        mag_plaus = rolling_max(mag_dev, win) < 1.0
-    thr_acc = chi2_threshold(alpha, 3)
-    thr_mag = chi2_threshold(alpha, 1)
-
-    P = torch.diag_embed(torch.cat([(p_["init_att_std"] ** 2)[:, None].expand(B, 3),
-                                    (p_["init_bias_std"] ** 2)[:, None].expand(B, 3)], -1))
-    q = so3.quat_normalize(q0)
-    b = b.clone()
-    qd_rate = torch.cat([var_g[:, None].expand(B, 3), var_bw[:, None].expand(B, 3)], -1)  # Q / dt (Eq. 10)
-
+        x.mag_plaus = rolling_max(mag_dev, win) < 1.0
+    x.thr_acc = chi2_threshold(alpha, 3)
+    x.thr_mag = chi2_threshold(alpha, 1)
+    x.P = torch.diag_embed(torch.cat([(p_["init_att_std"] ** 2)[:, None].expand(B, 3),
+                                      (p_["init_bias_std"] ** 2)[:, None].expand(B, 3)], -1))
+    x.b = b.clone()
+    x.qd_rate = torch.cat([var_g[:, None].expand(B, 3), var_bw[:, None].expand(B, 3)], -1)  # Q / dt (Eq. 10)
     # The nominal attitude is kept as a rotation matrix inside the loop (one exp per step
     # serves both the nominal propagation and F); quaternions are formed once at the end.
-    rot = so3.quat_to_matrix(q)
-    if use_compiled(backend, gyro, accel, dt, q0, mag, b, *p_.values()):
-        npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
-        zb = torch.zeros(B, n, dtype=dtype)
-        quat, bs, var, sg = eskf_loop(
-            npy(a_hat), npy(mag if mag is not None else torch.zeros_like(gyro)), npy(gyro), npy(dt), npy(rot), npy(b),
-            npy(P), npy(qd_rate), npy(var_acc), npy(acc_plaus), npy(var_mag if mag is not None else zb),
-            npy(mag_plaus if mag is not None else zb > 0), float(thr_acc), float(thr_mag), mag is not None,
-            bool(robust), int(n_iter), float(max_fading))
-        res = {"quat": torch.from_numpy(quat), "gyro_bias": torch.from_numpy(bs), "att_std": torch.from_numpy(var).sqrt()}
-        if robust:
-            sg = torch.from_numpy(sg)
-            res.update(mahalanobis_acc=sg[0], acc_gated=sg[3] > 1.0, fading=sg[2])
-            if mag is not None:
-                res.update(mahalanobis_mag=sg[1], mag_gated=sg[4] > 1.0)
-        return {k: unflatten(v, batch) for k, v in res.items()}
+    x.rot = so3.quat_to_matrix(so3.quat_normalize(q0))
+    return x, batch
+
+
+def _run_compiled(x, robust: bool, n_iter: int, max_fading: float) -> Dict[str, Tensor]:
+    """The recursion in the compiled loop (:func:`tcn_ahrs.filters.compiled.eskf_loop`)."""
+    npy = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+    zb = torch.zeros(x.B, x.n, dtype=x.dtype)
+    mag = x.mag
+    quat, bs, var, sg = eskf_loop(
+        npy(x.a_hat), npy(mag if mag is not None else torch.zeros_like(x.gyro)), npy(x.gyro), npy(x.dt), npy(x.rot),
+        npy(x.b), npy(x.P), npy(x.qd_rate), npy(x.var_acc), npy(x.acc_plaus),
+        npy(x.var_mag if mag is not None else zb), npy(x.mag_plaus if mag is not None else zb > 0),
+        float(x.thr_acc), float(x.thr_mag), mag is not None, bool(robust), int(n_iter), float(max_fading))
+    res = {"quat": torch.from_numpy(quat), "gyro_bias": torch.from_numpy(bs), "att_std": torch.from_numpy(var).sqrt()}
+    if robust:
+        sg = torch.from_numpy(sg)
+        res.update(mahalanobis_acc=sg[0], acc_gated=sg[3] > 1.0, fading=sg[2])
+        if mag is not None:
+            res.update(mahalanobis_mag=sg[1], mag_gated=sg[4] > 1.0)
+    return res
+
+
+def _run_torch(x, robust: bool, n_iter: int, max_fading: float) -> Dict[str, Tensor]:
+    """The recursion on tensors (autograd, CUDA): predict, the gravity observation, the heading
+    observation, per sample."""
+    rot, b, P, mag, B = x.rot, x.b, x.P, x.mag, x.B
+    eye3 = torch.eye(3, dtype=x.dtype, device=x.gyro.device).expand(B, 3, 3)
     rots, bs, variances = [rot], [b], [torch.diagonal(P, dim1=-2, dim2=-1)[:, :3]]
     sig = {k: [] for k in ("mahalanobis_acc", "mahalanobis_mag", "fading", "acc_gated", "mag_gated")}
-    for k in range(1, n):
-        rot, P = predict(rot, b, P, gyro[:, k], dt[:, k, None], qd_rate)
-        r, H = gravity_observation(rot, a_hat[:, k])
-        Ra = eye3 * var_acc[:, k, None, None]
-        rot, b, P, g_a, lp_a, lr_a = _observe(rot, b, P, r, H, Ra, acc_plaus[:, k], thr_acc, robust, n_iter, max_fading)
+    for k in range(1, x.n):
+        rot, P = predict(rot, b, P, x.gyro[:, k], x.dt[:, k, None], x.qd_rate)
+        r, H = gravity_observation(rot, x.a_hat[:, k])
+        Ra = eye3 * x.var_acc[:, k, None, None]
+        rot, b, P, g_a, lp_a, lr_a = _observe(rot, b, P, r, H, Ra, x.acc_plaus[:, k], x.thr_acc, robust, n_iter,
+                                              max_fading)
         if mag is not None:
             r, H, steep = heading_observation(rot, mag[:, k])
-            Rm = (var_mag[:, k] * steep)[:, None, None]
-            rot, b, P, g_m, lp_m, lr_m = _observe(rot, b, P, r, H, Rm, mag_plaus[:, k], thr_mag, robust, n_iter,
+            Rm = (x.var_mag[:, k] * steep)[:, None, None]
+            rot, b, P, g_m, lp_m, lr_m = _observe(rot, b, P, r, H, Rm, x.mag_plaus[:, k], x.thr_mag, robust, n_iter,
                                                   max_fading)
         rots.append(rot)
         bs.append(b)
@@ -321,8 +347,9 @@ def eskf(
     if robust:
         names = ["mahalanobis_acc", "acc_gated", "fading"] + (["mahalanobis_mag", "mag_gated"] if mag is not None else [])
         for name in names:
-            first = torch.ones(B, dtype=dtype, device=gyro.device) if name == "fading" else torch.zeros(B, dtype=dtype, device=gyro.device)
+            first = torch.ones(B, dtype=x.dtype, device=x.gyro.device) if name == "fading" else \
+                torch.zeros(B, dtype=x.dtype, device=x.gyro.device)
             if name.endswith("gated"):
                 first = first > 0.5
             res[name] = torch.stack([first] + sig[name], 1)
-    return {k: unflatten(v, batch) for k, v in res.items()}
+    return res
