@@ -14,6 +14,7 @@ import math
 
 from .quat import qmul_nb as qmul
 from .quat import qnormalize_nb as qnormalize
+from .quat import quat_step_nb as quat_step
 from .quat import rodrigues_nb as rodrigues
 
 
@@ -70,16 +71,7 @@ def mahony_step(qw, qx, qy, qz, bx, by, bz, ax, ay, az, mx, my, mz, use_mag, gx,
         dw, dx, dy, dz = qmul(qw, qx, qy, qz, 0.0, ox, oy, oz)
         qw, qx, qy, qz = qnormalize(qw + 0.5 * dw * d, qx + 0.5 * dx * d, qy + 0.5 * dy * d, qz + 0.5 * dz * d)
     else:
-        px, py, pz = ox * d, oy * d, oz * d
-        t2 = px * px + py * py + pz * pz
-        if t2 < 1e-6:
-            hs = 0.5 - t2 / 48.0 + t2 * t2 / 3840.0
-            cw = 1.0 - t2 / 8.0 + t2 * t2 / 384.0
-        else:
-            t = math.sqrt(t2)
-            hs = math.sin(0.5 * t) / t
-            cw = math.cos(0.5 * t)
-        qw, qx, qy, qz = qnormalize(*qmul(qw, qx, qy, qz, cw, hs * px, hs * py, hs * pz))
+        qw, qx, qy, qz = quat_step(qw, qx, qy, qz, ox * d, oy * d, oz * d)
     return qw, qx, qy, qz, bx, by, bz
 
 

@@ -13,6 +13,7 @@ matrices row by row (m00, m01, ..., m22).
 """
 # No `from __future__ import annotations`: TorchScript reads the annotations as real types.
 import math
+import types
 from typing import Tuple
 
 
@@ -108,7 +109,12 @@ try:
     qmul_nb = numba.njit(cache=True)(qmul)
     qnormalize_nb = numba.njit(cache=True)(qnormalize)
     rodrigues_nb = numba.njit(cache=True)(rodrigues)
+    # quat_step calls qmul and qnormalize: compiled, it calls their compiled readings (the same
+    # source, its globals pointed at them; TorchScript and the interpreter read the function itself)
+    quat_step_nb = numba.njit(cache=True)(types.FunctionType(
+        quat_step.__code__, {**globals(), "qmul": qmul_nb, "qnormalize": qnormalize_nb}, "quat_step"))
     NUMBA = True
 except ImportError:  # pragma: no cover - exercised only without numba
     matrix_to_quat_nb, qmul_nb, qnormalize_nb, rodrigues_nb = matrix_to_quat, qmul, qnormalize, rodrigues
+    quat_step_nb = quat_step
     NUMBA = False
