@@ -182,8 +182,6 @@ def export_c(ckpt_path, out_dir, prefix: Optional[str] = None, overwrite: bool =
     Existing files are refused unless ``overwrite``; the two are written as a set (hidden
     temporary names, renamed together at the end: never a header of one checkpoint beside the
     source of another)."""
-    import os
-
     from ...checkpoint import model_from_checkpoint
 
     name = prefix or re.sub(r"\W", "_", Path(ckpt_path).stem)
