@@ -71,14 +71,18 @@ class AtomicCheckpointIO(TorchCheckpointIO):
 
 
 def layout_meta(model_cfg: Mapping, axes: int, data_name: str = "",
-                rate_hz: Optional[float] = None, rate_range_hz: Optional[Sequence[float]] = None) -> Dict[str, Any]:
+                rate_hz: Optional[float] = None, rate_range_hz: Optional[Sequence[float]] = None,
+                device_check: bool = False) -> Dict[str, Any]:
     """The record stored with every checkpoint: model config, input layout, training data and
     rate; ``rate_range_hz`` (low, high): the rates it was trained at (random resampling), so
-    any recording in that range is its own."""
+    any recording in that range is its own; ``device_check``: it learned on recordings with their
+    gyro bias at rest subtracted (:mod:`tcn_ahrs.device_check`), so it is given them so."""
     layout = {"axes": int(axes), "channels": list(CHANNELS[int(axes)]),
               "rate_hz": None if rate_hz is None else float(rate_hz)}
     if rate_range_hz:
         layout["rate_range_hz"] = [float(rate_range_hz[0]), float(rate_range_hz[1])]
+    if device_check:
+        layout["device_check"] = True
     model = dict(model_cfg)
     # the loop always recorded: a record without one is read as a pre-closed-loop checkpoint
     # (checkpoint_meta), while the default is the closed loop

@@ -52,7 +52,7 @@ def sequence_tensors(seq: ImuSequence, axes: int, dtype=torch.float32, supervisi
 
         dt_t = torch.as_tensor(seq.dt, dtype=torch.float64)
         return {"imu": imu_t, "dt": dt_t.to(dtype), "rot": torch.eye(3, dtype=dtype).expand(n, 3, 3).contiguous(),
-                "valid": torch.ones(n, dtype=torch.bool), "trust_label": self_labels(imu_t, dt_t)}
+                "valid": torch.ones(n, dtype=torch.bool), "trust_label": self_labels(imu_t, dt_t, rest=rest_mask(seq))}
     valid_t = torch.as_tensor(valid)
     return {
         "imu": imu_t,
@@ -62,6 +62,17 @@ def sequence_tensors(seq: ImuSequence, axes: int, dtype=torch.float32, supervisi
         # targets of the backbone model's trust logits (whole-recording field reference)
         "trust_label": trust_labels(imu_t, rot, valid_t),
     }
+
+
+def rest_mask(seq: ImuSequence) -> Tensor:
+    """(N,) bool: the samples the device check calls rest (:func:`tcn_ahrs.device_check.rest_windows`:
+    the recording's own noise floor and a steady tilt, not absolute thresholds)."""
+    from .device_check import rest_windows
+
+    rest, n, _, _ = rest_windows(seq.gyro, seq.accel, float(seq.rate))
+    out = np.zeros(len(seq), dtype=bool)
+    out[:rest.size * n] = np.repeat(rest, n)
+    return torch.as_tensor(out)
 
 
 class SequenceStore:
@@ -258,8 +269,9 @@ class AHRSDataModule(pl.LightningDataModule):
     def __init__(self, data_cfg: Optional[Mapping], axes: int, window: int, stride: int,
                  batch_size: int, train_seqs: Optional[List[ImuSequence]] = None,
                  val_seqs: Optional[List[ImuSequence]] = None, margin: int = 0, balance: bool = False,
-                 supervision: str = "gt"):
+                 supervision: str = "gt", device_check: bool = False):
         super().__init__()
+        self.device_check = bool(device_check)
         if supervision not in ("gt", "self"):
             raise ValueError(f"train.supervision: expected 'gt' (motion capture) or 'self' (none needed), got {supervision!r}")
         self.supervision = supervision
@@ -288,6 +300,17 @@ class AHRSDataModule(pl.LightningDataModule):
                 self.train_seqs = load_split(self.data_cfg, "train")
             if self.val_seqs is None:
                 self.val_seqs = load_split(self.data_cfg, "val")
+        if self.device_check:
+            # each recording (part) with its own gyro bias at rest subtracted, as evaluate does for
+            # the general models: the model learns on what it will be given
+            from .device_check import check
+
+            checked = {}
+            for group in ("train_seqs", "val_seqs"):
+                setattr(self, group, [check(s).calibration().apply(s) for s in getattr(self, group)])
+                checked[group] = len(getattr(self, group))
+            print(f"device check: the gyro bias at rest subtracted from {checked['train_seqs']} training and "
+                  f"{checked['val_seqs']} validation recordings")
         keep = [s for s in self.train_seqs if s.has_gt and s.quat_valid.any()]
         if self.supervision == "self":
             keep = list(self.train_seqs)  # no ground truth needed

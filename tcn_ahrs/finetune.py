@@ -4,10 +4,12 @@ For each dataset, the general model that never saw it (the leave-one-dataset-out
 ``runs/lodo/<dataset>``) plays the user's starting point; the dataset plays the user's device:
 
 * ``k`` of its recordings (the first ``k`` of its first cross-validation fold) are the user's own;
-* fine-tuned twice from the general model (``experiment=finetune``): with their ground truth
-  (``train.supervision=gt``: backbone knobs, bias, networks, inference knobs on the later parts)
-  and without (``train.supervision=self``: the whole recordings, bias and networks from the
-  sensors' own consistency);
+* fine-tuned twice from the general model (``experiment=finetune``, device-checked recordings):
+  with their ground truth (``train.supervision=gt``: backbone knobs, bias, networks on the earlier
+  parts, inference knobs on the later parts) and without (``train.supervision=self``: bias and
+  networks from the sensors' own consistency on the earlier parts); each run ships the fine-tuned
+  model only when the later parts say it is better than the general model
+  (:mod:`tcn_ahrs.training.adaptation`), else the general model;
 * scored on the dataset's other training recordings, whole (which chose nothing), beside the
   general model, the backbone and the classical filters.
 
@@ -16,6 +18,7 @@ Output: ``finetune.json`` and ``finetune.md`` in ``out``; runs in ``finetune.run
 """
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
@@ -36,33 +39,30 @@ def own_recordings(data_cfg: Mapping, k: int) -> List[str]:
 
 def finetune_run(dataset: str, mode: str, init: Path, recordings: Sequence[str], run_dir: Path,
                  overrides: Sequence[str] = ()) -> Path:
-    """Fine-tune ``init`` on ``recordings`` of ``dataset`` (6 axes); returns the checkpoint."""
-    ckpt = run_dir / "checkpoints" / "last.ckpt"
-    done = run_dir / ("knobs.json" if mode == "gt" else "done")
-    if done.is_file() and ckpt.is_file():
-        return ckpt
+    """Fine-tune ``init`` on ``recordings`` of ``dataset`` (6 axes, device-checked, their later parts
+    held out); returns the checkpoint the run shipped (``adaptation.json``: the fine-tuned one, or
+    the starting model when the held-out parts did not say it is better)."""
+    record = run_dir / "adaptation.json"
+    if record.is_file():
+        return Path(json.loads(record.read_text())["shipped"])
     from .lodo import compose_train
     from .train import train_main
 
     recs = "[" + ",".join(f"'{r}'" for r in recordings) + "]"
     args = ["experiment=finetune", f"init={init}", f"data={dataset}", "data.axes=6", f"data.train={recs}",
             "data.fold=null", f"train.supervision={mode}", f"run_dir={run_dir}", "eval.enabled=false"]
-    if mode == "self":
-        args.append("train.all_recordings=true")  # nothing to validate without ground truth: whole recordings
     args += list(overrides)
-    if ckpt.is_file():
+    if (run_dir / "checkpoints" / "last.ckpt").is_file():
         args.append("resume=true")
     cfg = compose_train(args)
     print(f"finetune: {' '.join(args)}", flush=True)
-    train_main(cfg, overrides=list(args))
-    if mode == "self":
-        done.write_text("finished\n")
-    return ckpt
+    return Path(train_main(cfg, overrides=list(args))["best"])
 
 
 def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: int = 2,
              modes: Sequence[str] = MODES, overrides: Sequence[str] = (),
-             baselines: Sequence[str] = BASELINES, out: Optional[Path] = None) -> Dict[str, Any]:
+             baselines: Sequence[str] = BASELINES, out: Optional[Path] = None,
+             device_check: bool = True) -> Dict[str, Any]:
     from .datasets import load_split
     from .estimators import registry
     from .estimators.learned import LearnedEstimator
@@ -76,12 +76,18 @@ def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: i
         mine = own_recordings(cfg, k)
         cfg = {**dict(cfg), "fold": None, "axes": 6}
         seqs = [s for s in load_split(cfg, "trainval") if s.name not in mine and s.quat is not None and s.scored().any()]
+        if device_check:  # as evaluate gives the general model and the fine-tuned ones (train.device_check)
+            from .device_check import check
+
+            seqs = [check(s).calibration().apply(s) for s in seqs]
         ests = [LearnedEstimator(str(init), name="general")]
         ckpts = {"general": str(init)}
+        adopted: Dict[str, bool] = {}
         for mode in modes:
             ck = finetune_run(name, mode, init, mine, Path(runs) / f"{name}_{mode}", overrides)
             ests.append(LearnedEstimator(str(ck), name=f"finetuned_{mode}"))
             ckpts[f"finetuned_{mode}"] = str(ck)
+            adopted[mode] = json.loads((Path(runs) / f"{name}_{mode}" / "adaptation.json").read_text())["adopted"]
         for b in baselines:
             try:
                 ests.append(registry.build(b, 6))
@@ -92,10 +98,11 @@ def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: i
         classical = {n: v for n, v in means.items() if n not in ckpts and v["aae_deg"] is not None}
         best = min(classical, key=lambda n: classical[n]["aae_deg"])
         rows[name] = {"own_recordings": mine, "scored": [s.name for s in seqs], "means": means, "best": best,
-                      "checkpoints": ckpts}
+                      "checkpoints": ckpts, "adopted": adopted}
         print(f"finetune {name}: " + ", ".join(f"{n} {means[n]['aae_deg']:.2f}/{means[n]['inclination_deg']:.2f}"
                                                for n in list(ckpts) + [best]), flush=True)
-    result = {"finetune": rows, "k": int(k), "modes": list(modes), "overrides": list(overrides)}
+    result = {"finetune": rows, "k": int(k), "modes": list(modes), "overrides": list(overrides),
+              "device_check": bool(device_check)}
     write_result(out, "finetune", result, markdown(result))
     return result
 
@@ -114,13 +121,18 @@ def markdown(result: Mapping[str, Any]) -> str:
             lines.append(f"| {name} | {r['skipped']} |" + " |" * (len(head) - 1))
             continue
         m = r["means"]
-        cells = [pair(m["general"])] + [pair(m.get(f"finetuned_{x}")) for x in modes]
+        kept = {x: (r.get("adopted") or {}).get(x) is False for x in modes}
+        cells = [pair(m["general"])] + [pair(m.get(f"finetuned_{x}")) + (" (kept the start)" if kept[x] else "")
+                                        for x in modes]
         cells += [pair(next((v for n, v in m.items() if n.startswith("backbone")), None)),
                   f"{r['best']} {pair(m[r['best']])}"]
         lines.append(f"| {name} ({len(r['own_recordings'])} / {len(r['scored'])}) | " + " | ".join(cells) + " |")
     lines.append("")
     lines.append(f"Mean AAE / inclination in degrees (6 axes) over the dataset's other training recordings, whole; "
-                 f"the {result['k']} own recordings are the first of its first fold.")
+                 f"the {result['k']} own recordings are the first of its first fold"
+                 + ("; every method on device-checked recordings" if result.get("device_check") else "")
+                 + ". (kept the start): the later parts of the own recordings did not say the fine-tuned model "
+                 "is better, so the run shipped the general model (tcn_ahrs/training/adaptation.py).")
     return "\n".join(lines) + "\n"
 
 
@@ -132,7 +144,7 @@ def finetune_main(cfg) -> Dict[str, Any]:
     out = Path(cfg.get("out") or "runs/benchmark/finetune")
     res = finetune(data_cfgs, Path(t.get("lodo_runs") or "runs/lodo"), Path(t.get("runs") or "runs/finetune"),
                    int(t.get("k") or 2), list(t.get("modes") or MODES), list(t.get("overrides") or []),
-                   list(t.get("baselines") or BASELINES), out)
+                   list(t.get("baselines") or BASELINES), out, bool(t.get("device_check", True)))
     print(markdown(res))
     print(f"results in {out}")
     return res

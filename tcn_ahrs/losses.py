@@ -18,7 +18,7 @@ floor under the residuals a well-trained model drives toward.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -161,7 +161,7 @@ def trust_loss(logits: Tensor, labels: Tensor, valid: Tensor) -> Tensor:
 
 def self_labels(imu: Tensor, dt: Tensor, horizon_s: float = 0.2, acc_deg: float = 3.0, acc_norm: float = 0.03,
                 mag_deg: float = 3.0, mag_norm: float = 0.1, rest_s: float = 0.5,
-                rest_acc: float = 0.1, rest_gyro: float = 0.005) -> Tensor:
+                rest_acc: float = 0.1, rest_gyro: float = 0.005, rest: Optional[Tensor] = None) -> Tensor:
     """Targets for self-supervised training (no motion capture): what the sensors say about
     themselves. imu (N, C) raw, body frame (C = 6 or 9), dt (N,) s. Returns (N, 3) in {0., 1.}:
 
@@ -174,7 +174,10 @@ def self_labels(imu: Tensor, dt: Tensor, horizon_s: float = 0.2, acc_deg: float 
       within ``mag_deg`` of the median dip (a fixed field, a fixed dip);
     * column 2, at rest: the gyro's and the accelerometer's standard deviations over ``rest_s``
       below ``rest_gyro`` rad/s and ``rest_acc`` m/s² (the true rate is then zero, so the
-      gyro reads its bias)."""
+      gyro reads its bias). ``rest`` (N,) bool, when given, replaces that rule (the data module
+      passes the device check's, which judges rest by the signal's character:
+      :func:`tcn_ahrs.device_check.rest_windows`; absolute thresholds took TUM VI's slow hand
+      motion for rest and taught the network a bias that is not there)."""
     from .conventions import GRAVITY
 
     x = imu.to(torch.float64)
@@ -203,6 +206,8 @@ def self_labels(imu: Tensor, dt: Tensor, horizon_s: float = 0.2, acc_deg: float 
         ref = dip[acc_ok].median() if bool(acc_ok.any()) else dip.median()
         mag_ok = ((m_norm / m_norm.median() - 1.0).abs() < mag_norm) & ((dip - ref).abs() < math.radians(mag_deg))
     w = max(3, int(rest_s * rate))
+    if rest is not None:
+        return torch.stack([acc_ok, mag_ok, torch.as_tensor(rest, dtype=torch.bool)], -1).to(torch.float32)
     rest = torch.zeros(n, dtype=torch.bool)
     if n >= w:
         def rolling_std(v: Tensor) -> Tensor:

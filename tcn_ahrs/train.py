@@ -9,6 +9,7 @@ configuration's schema: :mod:`tcn_ahrs.config` (train.yaml = :class:`~tcn_ahrs.c
 """
 from __future__ import annotations
 
+import json
 import sys
 import time
 import warnings
@@ -78,6 +79,8 @@ def train_main(cfg: DictConfig, train_seqs=None, val_seqs=None, test_seqs=None,
     monitor = str(cfg.train.monitor) if dm.val_store is not None else "train/loss_epoch"
     trainer, fit_s = _fit(cfg, run_dir, axes, dm, module, model_cfg, monitor, callbacks)
     result = _select(cfg, run_dir, dm, module, trainer, fit_s, monitor)
+    if init_model is not None and trainer.is_global_zero:
+        result["best"] = _keep_if_not_better(cfg, run_dir, axes, dm, result["best"], supervision)
     if trainer.is_global_zero:
         result["results"] = _evaluate(cfg, run_dir, axes, result["best"], test_seqs)
     return result
@@ -138,10 +141,12 @@ def _data(cfg: DictConfig, axes: int, probe: LearnedAHRS, init_model, train_seqs
                          "init=<checkpoint of a residual model> (e.g. checkpoints/general9.ckpt)")
     dm = AHRSDataModule(cfg.data, axes, cfg.train.window, cfg.train.stride, cfg.train.batch_size,
                         train_seqs, val_seqs, margin=margin, balance=bool(cfg.train.get("balance")),
-                        supervision=supervision)
+                        supervision=supervision, device_check=bool(cfg.train.get("device_check", _T.device_check)))
     dm.prepare()
     if supervision == "self":
-        dm.val_seqs, dm.val_store = [], None  # nothing to validate against without ground truth
+        # no validation loss without ground truth; the held-out parts stay for the evidence that
+        # decides whether the fine-tuned model ships (training.adaptation)
+        dm.val_store = None
     return dm, supervision
 
 
@@ -180,6 +185,7 @@ def _build_module(cfg: DictConfig, axes: int, dm, model_cfg: Dict[str, Any], ini
                         ema_decay=float(ema or 0.0),  # null or 0: off
                         augment=plain(cfg.train.get("augment") or {}), supervision=supervision,
                         data_name=str(cfg.data.name),
+                        device_check=bool(cfg.train.get("device_check", _T.device_check)),
                         # the rate the model learned at (its TCN's time scale), for deployment
                         rate_hz=float(np.median([s.rate for s in dm.train_seqs])))
     if init_model is not None:
@@ -261,7 +267,7 @@ def _select(cfg: DictConfig, run_dir: Path, dm, module, trainer, fit_s: float, m
     if module.model.backbone is not None:
         best = last
         result["best"] = last
-        if cfg.train.get("select_knobs", _T.select_knobs) and dm.val_seqs:
+        if cfg.train.get("select_knobs", _T.select_knobs) and dm.val_seqs and dm.supervision == "gt":
             result["knobs"] = choose_knobs_into_checkpoint(last, dm.val_seqs, run_dir,
                                                            plain(cfg.train.get("knob_grid")) or None,
                                                            str(cfg.train.get("knob_rule") or _T.knob_rule))
@@ -273,6 +279,35 @@ def _select(cfg: DictConfig, run_dir: Path, dm, module, trainer, fit_s: float, m
               f"{done_epochs} of {int(cfg.train.epochs)} epochs: the model is under-trained. Real data: "
               "use its schedule (experiment=<name>_cl, no cap) or set train.max_time=null", file=sys.stderr)
     return result
+
+
+def _keep_if_not_better(cfg: DictConfig, run_dir: Path, axes: int, dm, tuned: str, supervision: str) -> str:
+    """Fine-tuning: the checkpoint that ships — the fine-tuned one when the held-out parts of the
+    user's recordings say it is better than the starting model (with ground truth: AAE and
+    inclination; without: drift at rest and the gravity angle, :mod:`tcn_ahrs.training.adaptation`),
+    else the starting model (``checkpoints/kept.ckpt``). The evidence goes to ``adaptation.json``."""
+    if not cfg.train.get("keep_if_not_better", _T.keep_if_not_better):
+        return tuned
+    from .checkpoint import atomic_save
+    from .estimators.learned import LearnedEstimator
+    from .training.adaptation import decide, evidence
+
+    seqs = list(dm.val_seqs or [])
+    before = evidence(LearnedEstimator(str(cfg.init), name="before"), seqs, supervision, axes)
+    after = evidence(LearnedEstimator(tuned, name="after"), seqs, supervision, axes)
+    adopt, why = decide(before, after, supervision)
+    shipped = tuned
+    if not adopt:
+        ck = load_checkpoint(str(cfg.init))
+        if cfg.train.get("device_check", _T.device_check):  # compared on checked input: it is given that
+            ck["tcn_ahrs"] = {**ck["tcn_ahrs"], "layout": {**ck["tcn_ahrs"]["layout"], "device_check": True}}
+        shipped = str(run_dir / "checkpoints" / "kept.ckpt")
+        atomic_save(ck, shipped)
+    record = {"supervision": supervision, "held_out_parts": [s.name for s in seqs], "before": before,
+              "after": after, "adopted": bool(adopt), "why": why, "shipped": shipped, "fine_tuned": tuned}
+    (run_dir / "adaptation.json").write_text(json.dumps(record, indent=2) + "\n")
+    print(f"fine-tuning: {why} ({shipped})")
+    return shipped
 
 
 def _evaluate(cfg: DictConfig, run_dir: Path, axes: int, best: str, test_seqs) -> Optional[Dict[str, Any]]:

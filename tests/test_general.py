@@ -205,7 +205,7 @@ def test_fine_tuning_starts_from_the_checkpoint_with_or_without_ground_truth(tmp
     va = [simulate("slow_rotation", 12.0, 100.0, 50)]
     if supervision == "self":
         for s in tr:
-            s.quat, s.quat_valid = None, np.zeros(len(s), dtype=bool)
+            s.quat, s.quat_valid = None, None  # as a loader gives a recording without ground truth
     cfg = _compose(["experiment=finetune", "data=generic", f"init={init}", f"train.supervision={supervision}",
                     "train.epochs=1", "train.window=400", "train.stride=200", "train.batch_size=4",
                     "trainer.enable_progress_bar=false", "eval.enabled=false", "threads=1",

@@ -24,8 +24,8 @@ class EvaluateConfig:
     trajectories: bool = True
     align: str = "protocol"      # the yardstick (tcn_ahrs.metrics); or heading | first | none
     # the device check (tcn_ahrs.device_check, no ground truth): each recording's gyro bias at rest
-    # subtracted before every method; auto: with the general models (no ckpt given), off for a
-    # model trained on its own device's raw readings
+    # subtracted before every method; auto: with the general models (no ckpt given) and a model
+    # trained on checked recordings (train.device_check), off for one trained on raw readings
     device_check: str = "auto"   # auto | true | false
 
 
@@ -91,6 +91,7 @@ class FinetuneSection:
     lodo_runs: str = "runs/lodo"
     runs: str = "runs/finetune"
     baselines: Optional[List[str]] = None
+    device_check: bool = True       # every method (and the fine-tuning) on device-checked recordings
 
 
 @dataclass

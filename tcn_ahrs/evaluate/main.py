@@ -68,7 +68,9 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
               "is scored as 6-axis (heading relative to the start)")
         axes = 6
     check_layout(ck, axes, cfg.ckpt, data_axes=dataset_axes(str(cfg.data.name)))
-    seqs, refused = _recordings(cfg, general_model)
+    # auto: the general models, and a model that learned on checked recordings (train.device_check)
+    checked_input = general_model or bool(checkpoint_meta(ck, cfg.ckpt)["layout"].get("device_check"))
+    seqs, refused = _recordings(cfg, checked_input)
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
                                other_rate=str(cfg.get("other_rate", _D.other_rate)))
@@ -77,7 +79,8 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
 
 def _recordings(cfg: DictConfig, general_model: bool = False):
     """(the split's recordings with ground truth, [(recording, reason)] of those its checks
-    refused); with the device check on (``device_check``: auto = for the general models) each
+    refused); with the device check on (``device_check``: auto = for the general models and the
+    models trained on checked recordings) each
     recording's gyro bias at rest is subtracted, and what the check found is printed."""
     from ..datasets import load_split
 

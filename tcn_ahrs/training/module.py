@@ -33,7 +33,8 @@ class AHRSModule(pl.LightningModule):
                  noise: Optional[Dict[str, float]] = None, data_name: str = "",
                  rate_hz: Optional[float] = None, stream_chunks: int = _T.stream_chunks,
                  attitude_delta: float = _T.attitude_delta, ema_decay: float = _T.ema_decay,
-                 augment: Optional[Dict[str, Any]] = None, supervision: str = _T.supervision):
+                 augment: Optional[Dict[str, Any]] = None, supervision: str = _T.supervision,
+                 device_check: bool = _T.device_check):
         super().__init__()
         self.save_hyperparameters()
         self.model = LearnedAHRS.from_config(model_cfg, axes=axes)
@@ -233,7 +234,8 @@ class AHRSModule(pl.LightningModule):
         cfg = dict(self.hparams.model_cfg)
         cfg["axes"] = self.model.axes
         checkpoint["tcn_ahrs"] = layout_meta(cfg, self.model.axes, self.hparams.data_name,
-                                             self.hparams.get("rate_hz"), self.augment.get("rate_hz"))
+                                             self.hparams.get("rate_hz"), self.augment.get("rate_hz"),
+                                             bool(self.hparams.get("device_check")))
 
 
 # ====================================================================== helpers
