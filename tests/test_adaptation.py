@@ -94,3 +94,21 @@ def test_self_supervised_fine_tuning_without_rest_to_judge_by_ships_the_start(tm
     assert checkpoint_meta(load_checkpoint(res["best"]))["layout"].get("device_check") is True
     assert not torch.equal(start.calibration.gyro_net.out.weight,
                            model_from_checkpoint(res["last"]).calibration.gyro_net.out.weight)  # it did train
+
+
+def test_a_part_that_never_rests_is_corrected_by_its_recordings_rest():
+    """train.device_check: one check per recording, read from the part that rests (a later part in
+    flight never rests: EuRoC's 4.4 °/s bias would otherwise stay in it)."""
+    from tcn_ahrs.data import AHRSDataModule
+
+    bias = np.radians([1.0, -2.0, 5.0])
+    still = simulate("static", 20.0, 100.0, seed=1, device_seed=2, axes=6, noise_free=True)
+    still.gyro = still.gyro + bias
+    moving = _never_resting()
+    moving.gyro = moving.gyro + bias
+    for s in (still, moving):
+        s.meta["recording"] = "device"
+    dm = AHRSDataModule(None, 6, 200, 100, 4, [still], [moving], device_check=True)
+    dm.prepare()
+    assert np.allclose(dm.val_seqs[0].gyro, moving.gyro - bias, atol=np.radians(0.02))
+    assert np.allclose(dm.train_seqs[0].gyro.mean(0), still.gyro.mean(0) - bias, atol=np.radians(0.02))

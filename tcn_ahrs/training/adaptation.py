@@ -18,7 +18,7 @@ trained on (``data.train_part``):
   - ``gravity_deg``: the mean angle between the estimate's up and the accelerometer where the
     specific force is gravity alone (:func:`tcn_ahrs.losses.self_labels` column 0) — inclination
     without ground truth.
-  Adopted when the rest drift falls by at least ``MIN_GAIN`` and the gravity angle rises by no
+  Adopted when the rest drift falls by at least ``MIN_GAIN`` and ``MIN_GAIN_DPS`` and the gravity angle rises by no
   more than ``GRAVITY_TOL_DEG``; no rest in the held-out parts is no evidence: the starting model stays.
 """
 from __future__ import annotations
@@ -33,6 +33,7 @@ from .. import so3
 from ..sequence import ImuSequence
 
 MIN_GAIN = 0.1          # the rest drift must fall by 10 % (self-supervised)
+MIN_GAIN_DPS = 0.01     # °/s, and by this much: below it (0.6° a minute) it is the evidence's noise
 GRAVITY_TOL_DEG = 0.05  # °, how much the gravity angle may rise (self-supervised)
 INCLINATION_TOL_DEG = 0.01  # °, how much the inclination may rise (with ground truth)
 
@@ -129,7 +130,7 @@ def decide(before: Dict[str, Any], after: Dict[str, Any], supervision: str) -> t
                        "the starting model is kept")
     g0, g1 = before.get("gravity_deg"), after.get("gravity_deg")
     gravity_ok = g0 is None or g1 is None or g1 <= g0 + GRAVITY_TOL_DEG
-    ok = d1 <= (1.0 - MIN_GAIN) * d0 and gravity_ok
+    ok = d1 <= (1.0 - MIN_GAIN) * d0 and d0 - d1 >= MIN_GAIN_DPS and gravity_ok
     grav = "" if g0 is None or g1 is None else f", gravity angle {g0:.2f} → {g1:.2f}°"
     return ok, (f"held-out parts: drift at rest {d0:.3f} → {d1:.3f} °/s over {after['rest_s']:.0f} s{grav}: "
                 + ("better, the fine-tuned model ships" if ok else "not better, the starting model is kept"))
