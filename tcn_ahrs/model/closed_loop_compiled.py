@@ -55,6 +55,42 @@ if AVAILABLE:
 
 
 if AVAILABLE:
+    @numba.njit(cache=True)
+    def _rows_vjp(r, rbar, rprev, p0, p1, p2, t2, a, c):  # pragma: no cover
+        """One step's rows r_i' = r_i + a k_i + c (k_i × p), k_i = r_i × p (so3's series a, c of
+        t2 = |p|²) in reverse: rbar (3, 3) their adjoint -> rprev (3, 3) the rows' (written) and
+        the adjoint of p (returned)."""
+        abar = cbar = 0.0
+        pb0 = pb1 = pb2 = 0.0
+        for i in range(3):
+            k0 = r[i, 1] * p2 - r[i, 2] * p1
+            k1 = r[i, 2] * p0 - r[i, 0] * p2
+            k2 = r[i, 0] * p1 - r[i, 1] * p0
+            q0, q1, q2 = rbar[i, 0], rbar[i, 1], rbar[i, 2]
+            abar += q0 * k0 + q1 * k1 + q2 * k2
+            cbar += q0 * (k1 * p2 - k2 * p1) + q1 * (k2 * p0 - k0 * p2) + q2 * (k0 * p1 - k1 * p0)
+            # adjoint of k_i: a q + c (p × q); of p through (k × p): c (q × k)
+            kb0 = a * q0 + c * (p1 * q2 - p2 * q1)
+            kb1 = a * q1 + c * (p2 * q0 - p0 * q2)
+            kb2 = a * q2 + c * (p0 * q1 - p1 * q0)
+            pb0 += c * (q1 * k2 - q2 * k1)
+            pb1 += c * (q2 * k0 - q0 * k2)
+            pb2 += c * (q0 * k1 - q1 * k0)
+            # k = r × p: adjoint of r: p × kb; of p: kb × r
+            rprev[i, 0] = q0 + (p1 * kb2 - p2 * kb1)
+            rprev[i, 1] = q1 + (p2 * kb0 - p0 * kb2)
+            rprev[i, 2] = q2 + (p0 * kb1 - p1 * kb0)
+            pb0 += kb1 * r[i, 2] - kb2 * r[i, 1]
+            pb1 += kb2 * r[i, 0] - kb0 * r[i, 2]
+            pb2 += kb0 * r[i, 1] - kb1 * r[i, 0]
+        da = -1.0 / 6.0 + t2 / 60.0 - t2 * t2 / 1680.0
+        dc = -1.0 / 24.0 + t2 / 360.0 - t2 * t2 / 13440.0
+        tb = abar * da + cbar * dc
+        pb0 += 2.0 * tb * p0
+        pb1 += 2.0 * tb * p1
+        pb2 += 2.0 * tb * p2
+        return pb0, pb1, pb2
+
     @numba.njit(cache=True, parallel=True)
     def _scan_vjp_nb(state, rows, east_ref, bias_gain, out, gout, g_state, g_rows, g_east, g_kb):  # pragma: no cover
         """Reverse mode of :func:`_scan_nb`: out (B, N, 15) its outputs, gout (B, N, 15) the
@@ -68,7 +104,6 @@ if AVAILABLE:
             rbar = np.empty((3, 3))   # adjoint of C after the step (output grad + carried)
             rprev = np.zeros((3, 3))  # adjoint of C before the step
             lam = np.zeros(12)        # carried adjoint of (C, b)
-            kvec = np.empty((3, 3))
             e0, e1, e2 = east_ref[bi, 0], east_ref[bi, 1], east_ref[bi, 2]
             ge0 = ge1 = ge2 = gkb = 0.0
             for k in range(rows.shape[1] - 1, 0, -1):
@@ -99,37 +134,7 @@ if AVAILABLE:
                 t2 = p0 * p0 + p1 * p1 + p2 * p2
                 a = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0 * (1.0 - t2 / 42.0))
                 c = 0.5 - t2 / 24.0 * (1.0 - t2 / 30.0 * (1.0 - t2 / 56.0))
-                # ---- rows r_i' = r_i + a k_i + c (k_i × p), k_i = r_i × p
-                abar = cbar = 0.0
-                pb0 = pb1 = pb2 = 0.0
-                for i in range(3):
-                    k0 = r[i, 1] * p2 - r[i, 2] * p1
-                    k1 = r[i, 2] * p0 - r[i, 0] * p2
-                    k2 = r[i, 0] * p1 - r[i, 1] * p0
-                    kvec[i, 0], kvec[i, 1], kvec[i, 2] = k0, k1, k2
-                    q0, q1, q2 = rbar[i, 0], rbar[i, 1], rbar[i, 2]
-                    abar += q0 * k0 + q1 * k1 + q2 * k2
-                    cbar += q0 * (k1 * p2 - k2 * p1) + q1 * (k2 * p0 - k0 * p2) + q2 * (k0 * p1 - k1 * p0)
-                    # adjoint of k_i: a q + c (p × q); of p through (k × p): c (q × k)
-                    kb0 = a * q0 + c * (p1 * q2 - p2 * q1)
-                    kb1 = a * q1 + c * (p2 * q0 - p0 * q2)
-                    kb2 = a * q2 + c * (p0 * q1 - p1 * q0)
-                    pb0 += c * (q1 * k2 - q2 * k1)
-                    pb1 += c * (q2 * k0 - q0 * k2)
-                    pb2 += c * (q0 * k1 - q1 * k0)
-                    # k = r × p: adjoint of r: p × kb; of p: kb × r
-                    rprev[i, 0] = q0 + (p1 * kb2 - p2 * kb1)
-                    rprev[i, 1] = q1 + (p2 * kb0 - p0 * kb2)
-                    rprev[i, 2] = q2 + (p0 * kb1 - p1 * kb0)
-                    pb0 += kb1 * r[i, 2] - kb2 * r[i, 1]
-                    pb1 += kb2 * r[i, 0] - kb0 * r[i, 2]
-                    pb2 += kb0 * r[i, 1] - kb1 * r[i, 0]
-                da = -1.0 / 6.0 + t2 / 60.0 - t2 * t2 / 1680.0
-                dc = -1.0 / 24.0 + t2 / 360.0 - t2 * t2 / 13440.0
-                tb = abar * da + cbar * dc
-                pb0 += 2.0 * tb * p0
-                pb1 += 2.0 * tb * p1
-                pb2 += 2.0 * tb * p2
+                pb0, pb1, pb2 = _rows_vjp(r, rbar, rprev, p0, p1, p2, t2, a, c)
                 # ---- p = (g − b' + w) dt
                 gg0, gg1, gg2 = pb0 * dt, pb1 * dt, pb2 * dt
                 bb0 -= pb0 * dt

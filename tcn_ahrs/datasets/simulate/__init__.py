@@ -75,6 +75,41 @@ SPLITS = {"train": ("train",), "val": ("val",), "test": ("test",),
 
 
 
+def _sensor_errors(noise_free: bool, device_seed: int, sens, envp, rngs, t: np.ndarray, rate: float,
+                   moving: np.ndarray, duration: float) -> Dict[str, Any]:
+    """The recording's sensor errors (Eqs. 9-11): K matrices, bias tracks, white noise, hard iron
+    and the magnetic disturbance in the navigation frame; all zero / identity when ``noise_free``.
+    ``rngs``: the sensor, noise and disturbance streams of :func:`simulate`, drawn in this order."""
+    n = t.shape[0]
+    if noise_free:
+        eye, zeros = np.eye(3), np.zeros((n, 3))
+        return {"k_gyro": eye, "k_acc": eye, "k_mag": eye, "gyro_bias": zeros, "acc_bias": zeros.copy(),
+                "hard_iron": np.zeros(3), "d_nav": zeros.copy(), "gyro_noise": 0.0, "acc_noise": 0.0,
+                "mag_noise": 0.0, "b_g0": np.zeros(3), "b_a0": np.zeros(3)}
+    rng_sensor, rng_noise, rng_dist = rngs
+    dt = 1.0 / rate
+    dev = draw_device(device_seed, sens)
+    rk = sens.recording_k_std
+    k_gyro = dev.k_gyro + rng_sensor.normal(0.0, rk, (3, 3))
+    k_acc = dev.k_acc + rng_sensor.normal(0.0, rk, (3, 3))
+    k_mag = dev.k_mag + rng_sensor.normal(0.0, rk, (3, 3))
+    b_g0 = dev.gyro_bias + rng_sensor.normal(0.0, sens.gyro_bias_repeatability_dps * DEG, 3)
+    b_a0 = dev.acc_bias + rng_sensor.normal(0.0, sens.acc_bias_repeatability, 3)
+    hard_iron = dev.hard_iron + rng_sensor.normal(0.0, sens.hard_iron_repeatability_ut, 3)
+    unit = rng_noise.standard_normal((5, n, 3))  # one draw: bias walks, then white noise
+    gyro_bias = bias_track(unit[0], dt, b_g0, sens.gyro_bias_rw_dps * DEG)
+    acc_bias = bias_track(unit[1], dt, b_a0, sens.acc_bias_rw)
+    sq = math.sqrt(rate)
+    gyro_noise = unit[2] * (sens.gyro_noise_density_dps * DEG * sq)
+    acc_noise = unit[3] * (sens.acc_noise_density * sq)
+    mag_noise = unit[4] * (sens.mag_noise_density_ut * sq)
+    rest_end = float(t[np.argmax(moving)]) if moving.any() else 0.0
+    d_nav = mag_disturbance(rng_dist, t, envp, not_before=max(rest_end, min(10.0, 0.2 * duration)))
+    return {"k_gyro": k_gyro, "k_acc": k_acc, "k_mag": k_mag, "gyro_bias": gyro_bias, "acc_bias": acc_bias,
+            "hard_iron": hard_iron, "d_nav": d_nav, "gyro_noise": gyro_noise, "acc_noise": acc_noise,
+            "mag_noise": mag_noise, "b_g0": b_g0, "b_a0": b_a0}
+
+
 def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 9,
              noise_free: bool = False, device_seed: int = 0, **error_params) -> ImuSequence:
     """Simulate one IMU recording with exact ground truth.
@@ -134,33 +169,11 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
     spec_force = ext_acc_body + GRAVITY * r[:, 2, :]  # R^T (a + g up): third row of R
     m_nav = envp.field_nav()
 
-    if noise_free:
-        eye = np.eye(3)
-        k_gyro = k_acc = k_mag = eye
-        gyro_bias = np.zeros((n, 3))
-        acc_bias = np.zeros((n, 3))
-        hard_iron = np.zeros(3)
-        d_nav = np.zeros((n, 3))
-        gyro_noise = acc_noise = mag_noise = 0.0
-        b_g0 = b_a0 = np.zeros(3)
-    else:
-        dev = draw_device(device_seed, sens)
-        rk = sens.recording_k_std
-        k_gyro = dev.k_gyro + rng_sensor.normal(0.0, rk, (3, 3))
-        k_acc = dev.k_acc + rng_sensor.normal(0.0, rk, (3, 3))
-        k_mag = dev.k_mag + rng_sensor.normal(0.0, rk, (3, 3))
-        b_g0 = dev.gyro_bias + rng_sensor.normal(0.0, sens.gyro_bias_repeatability_dps * DEG, 3)
-        b_a0 = dev.acc_bias + rng_sensor.normal(0.0, sens.acc_bias_repeatability, 3)
-        hard_iron = dev.hard_iron + rng_sensor.normal(0.0, sens.hard_iron_repeatability_ut, 3)
-        unit = rng_noise.standard_normal((5, n, 3))  # one draw: bias walks, then white noise
-        gyro_bias = bias_track(unit[0], dt, b_g0, sens.gyro_bias_rw_dps * DEG)
-        acc_bias = bias_track(unit[1], dt, b_a0, sens.acc_bias_rw)
-        sq = math.sqrt(rate)
-        gyro_noise = unit[2] * (sens.gyro_noise_density_dps * DEG * sq)
-        acc_noise = unit[3] * (sens.acc_noise_density * sq)
-        mag_noise = unit[4] * (sens.mag_noise_density_ut * sq)
-        rest_end = float(t[np.argmax(moving)]) if moving.any() else 0.0
-        d_nav = mag_disturbance(rng_dist, t, envp, not_before=max(rest_end, min(10.0, 0.2 * duration)))
+    e = _sensor_errors(noise_free, device_seed, sens, envp, (rng_sensor, rng_noise, rng_dist), t, rate, moving,
+                       float(duration))
+    k_gyro, k_acc, k_mag, hard_iron, d_nav = e["k_gyro"], e["k_acc"], e["k_mag"], e["hard_iron"], e["d_nav"]
+    gyro_bias, acc_bias, b_g0, b_a0 = e["gyro_bias"], e["acc_bias"], e["b_g0"], e["b_a0"]
+    gyro_noise, acc_noise, mag_noise = e["gyro_noise"], e["acc_noise"], e["mag_noise"]
 
     gyro = omega @ k_gyro.T + gyro_bias + gyro_noise                            # Eq. 9
     accel = spec_force @ k_acc.T + acc_bias + acc_noise                         # Eq. 10
