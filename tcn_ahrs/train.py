@@ -294,7 +294,7 @@ def _knob_parts(cfg: DictConfig, dm) -> List:
     on the other 14)."""
     if not _gated(cfg):
         return list(dm.val_seqs)
-    return [s.slice(0, len(s) // 2) for s in dm.val_seqs if len(s) >= 4]
+    return [s.slice(0, _half(s)) for s in dm.val_seqs if len(s) >= 4]
 
 
 def _evidence_parts(cfg: DictConfig, dm) -> List:
@@ -302,7 +302,15 @@ def _evidence_parts(cfg: DictConfig, dm) -> List:
     (all of each part without ground truth, where no knob was chosen)."""
     if dm.supervision != "gt":
         return list(dm.val_seqs)
-    return [s.slice(len(s) // 2, len(s)) for s in dm.val_seqs if len(s) >= 4]
+    return [s.slice(_half(s), len(s)) for s in dm.val_seqs if len(s) >= 4]
+
+
+def _half(seq) -> int:
+    """Where a part splits into halves of equal scored ground truth (BROAD scores no final rest:
+    halves by samples left the second without any)."""
+    scored = np.nonzero(seq.scored())[0] if seq.has_gt else np.zeros(0, int)
+    cut = int(scored[scored.size // 2]) if scored.size >= 2 else len(seq) // 2
+    return min(max(cut, 2), len(seq) - 2)
 
 
 def _keep_if_not_better(cfg: DictConfig, run_dir: Path, axes: int, dm, tuned: str, supervision: str) -> str:

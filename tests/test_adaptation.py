@@ -112,3 +112,15 @@ def test_a_part_that_never_rests_is_corrected_by_its_recordings_rest():
     dm.prepare()
     assert np.allclose(dm.val_seqs[0].gyro, moving.gyro - bias, atol=np.radians(0.02))
     assert np.allclose(dm.train_seqs[0].gyro.mean(0), still.gyro.mean(0) - bias, atol=np.radians(0.02))
+
+
+def test_the_evidence_half_holds_half_of_the_scored_ground_truth():
+    """Knobs on one half of each later part, evidence on the other, split by scored samples (BROAD
+    scores no final rest: a split by samples left the evidence half with nothing to score)."""
+    from tcn_ahrs.train import _half
+
+    seq = simulate("walking", 20.0, 100.0, seed=1)
+    seq.score_mask = np.arange(len(seq)) < 0.6 * len(seq)
+    cut = _half(seq)
+    assert abs(cut - 0.3 * len(seq)) <= 2
+    assert seq.slice(cut, len(seq)).scored().sum() >= 0.49 * seq.scored().sum()

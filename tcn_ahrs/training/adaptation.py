@@ -107,7 +107,9 @@ def gt_evidence(estimator, seqs: Sequence[ImuSequence], axes: int) -> Dict[str, 
         if not s.has_gt:
             continue
         i0, q0 = initial_state(s)
-        rows.append(aae_and_inclination(s, estimator.run(s, q0, i0).quat, axes))
+        row = aae_and_inclination(s, estimator.run(s, q0, i0).quat, axes)
+        if np.all(np.isfinite(row)):  # a part without scored samples says nothing
+            rows.append(row)
     if not rows:
         return {"aae_deg": None, "inclination_deg": None}
     a = np.asarray(rows)
