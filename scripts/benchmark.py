@@ -20,7 +20,7 @@ finetune: tcn_ahrs.finetune.finetune_main(cfg): those models fine-tuned on k rec
           left-out dataset (with and without ground truth), scored on its other recordings.
 faults:   tcn_ahrs.bench.faults.faults_main(cfg): sensor faults injected into simulated recordings,
           the backbone with and without its health checks beside VQF and the default model.
-Config: tcn_ahrs/conf/benchmark.yaml. Output: runs/benchmark/<mode>/<data>/<time> unless out=DIR.
+Config: conf/benchmark.yaml. Output: runs/benchmark/<mode>/<data>/<time> unless out=DIR.
 
 Same as ``tcn-ahrs benchmark ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/benchmark.py``.
 """

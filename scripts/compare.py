@@ -7,7 +7,7 @@
 
 Writes results.json (metrics, tuned parameters and the recordings they were tuned on) and
 results.md (Table 1/2 layout, BROAD total/heading/inclination, group averages, ablation) to
-``out`` (default runs/compare/<data>/<time>; options in tcn_ahrs/conf/compare.yaml).
+``out`` (default runs/compare/<data>/<time>; options in conf/compare.yaml).
 
 Same as ``tcn-ahrs compare ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/compare.py``.
 """

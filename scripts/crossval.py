@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Leave-recordings-out cross-validation of the learned AHRS (see tcn_ahrs/conf/crossval.yaml).
+"""Leave-recordings-out cross-validation of the learned AHRS (see conf/crossval.yaml).
 
     python scripts/crossval.py experiment=broad9_cl                 # every fold of data.folds
     python scripts/crossval.py experiment=broad9_cl crossval.folds=[0]

@@ -5,7 +5,7 @@
     python scripts/evaluate.py ckpt=PATH data=broad data.split=test baselines=[ecf]
     python scripts/evaluate.py ckpt=PATH data=generic data.root=DIR data.split=all out=DIR
 
-Writes results.json, results.md, plots and TUM trajectories to ``out`` (tcn_ahrs/conf/evaluate.yaml).
+Writes results.json, results.md, plots and TUM trajectories to ``out`` (conf/evaluate.yaml).
 
 Same as ``tcn-ahrs evaluate ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/evaluate.py``.
 """

@@ -8,7 +8,7 @@ Loading the result needs only torch:
     m = torch.jit.load("FILE.pt");  quat, omega = m(imu, dt, q0);  print(m.metadata())
     s = torch.jit.load("FILE_streaming.pt");  s.reset(q0);  quat, omega = s.step(sample, dt)
 
-Configuration: tcn_ahrs/conf/export.yaml; the contract is in tcn_ahrs/export.py's docstring.
+Configuration: conf/export.yaml; the contract is in tcn_ahrs/export.py's docstring.
 
 Same as ``tcn-ahrs export ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/export.py``.
 """

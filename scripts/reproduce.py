@@ -5,7 +5,7 @@
     python scripts/reproduce.py paper=es_ekf_odometry paper.seeds=20 'paper.scenarios=[paper]'
 
 Prints the paper's table with its numbers beside ours; writes results.json, results.md, TUM
-trajectories and plots to ``out`` (default runs/reproduce/<paper>/<time>; tcn_ahrs/conf/paper/<paper>.yaml).
+trajectories and plots to ``out`` (default runs/reproduce/<paper>/<time>; conf/paper/<paper>.yaml).
 
 Same as ``tcn-ahrs reproduce ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/reproduce.py``.
 """

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""The nested search over estimator families for one device (see tcn_ahrs/conf/search.yaml).
+"""The nested search over estimator families for one device (see conf/search.yaml).
 
     python scripts/search.py data=euroc data.axes=6                 # every outer fold, 3 seeds
     python scripts/search.py data=broad search.trials=10 search.seeds=[0]

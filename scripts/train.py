@@ -6,7 +6,7 @@
     python scripts/train.py experiment=broad9                # the paper's open loop, 1800 epochs (GPU)
     python scripts/train.py resume=true run_dir=runs/broad/<that run>   # continue after a kill
 
-Configuration: tcn_ahrs/conf/train.yaml (+ groups data/ model/ trainer/ experiment/).
+Configuration: conf/train.yaml (+ groups data/ model/ trainer/ experiment/).
 
 Same as ``tcn-ahrs train ...`` (tcn_ahrs/cli.py); this file is kept for ``python scripts/train.py``.
 """

@@ -6,7 +6,7 @@
     tcn-ahrs export ckpt=checkpoints/broad9.ckpt out=model.pt
     tcn-ahrs benchmark transfer
 
-Each command is one Hydra app on a main config shipped in the package (``tcn_ahrs/conf/``), so an
+Each command is one Hydra app on a main config shipped in the package (``conf/``), so an
 installed wheel runs anywhere; overrides are checked first (a misspelt key is one line with the
 nearest valid key, exit 2) and user errors follow :mod:`tcn_ahrs.app`'s contract.
 """
@@ -23,7 +23,7 @@ from .conf import SEARCH_PATH
 
 
 class Command(NamedTuple):
-    config: str   # main config in tcn_ahrs/conf/
+    config: str   # main config in conf/
     target: str   # "module:function" taking the composed config
     summary: str
 

@@ -282,7 +282,7 @@ def _default_out(cfg, kind: str) -> Path:
 
 
 def _tune_data_cfg(cfg):
-    """The data config the tuning recordings come from: ``tune_data`` (a name in tcn_ahrs/conf/data/, e.g.
+    """The data config the tuning recordings come from: ``tune_data`` (a name in conf/data/, e.g.
     ``broad``: its shipped training recordings, ``tune_root`` to move its root), else ``cfg.data``."""
     name = cfg.get("tune_data")
     if not name:
@@ -293,7 +293,7 @@ def _tune_data_cfg(cfg):
 
     path = conf_path("data", f"{name}.yaml")
     if not path.is_file():
-        raise ValueError(f"tune_data: no data config {name!r} (expected tcn_ahrs/conf/data/{name}.yaml)")
+        raise ValueError(f"tune_data: no data config {name!r} (expected conf/data/{name}.yaml)")
     dc = OmegaConf.load(path)
     dc.pop("defaults", None)
     if cfg.get("tune_root"):
@@ -359,5 +359,5 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
 
 def benchmark_accuracy_main(cfg) -> dict:
     """``scripts/benchmark.py accuracy``: :func:`compare_main` with the peers (``peers: true`` in
-    tcn_ahrs/conf/benchmark.yaml) and an optional learned checkpoint ``ckpt``."""
+    conf/benchmark.yaml) and an optional learned checkpoint ``ckpt``."""
     return compare_main(cfg, BENCHMARK_KEYS, kind="benchmark")

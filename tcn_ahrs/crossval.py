@@ -125,7 +125,7 @@ def _folds(cfg: DictConfig) -> Tuple[List[list], List[int]]:
     folds = list(OmegaConf.to_container(cfg.data.get("folds"), resolve=True) or []) if cfg.data.get("folds") else []
     if not folds:
         raise ValueError(f"crossval: data '{cfg.data.name}' defines no data.folds (lists of training "
-                         "recordings to hold out); add them to its tcn_ahrs/conf/data/*.yaml")
+                         "recordings to hold out); add them to its conf/data/*.yaml")
     idx = list(cfg.crossval.folds) if cfg.crossval.get("folds") is not None else list(range(len(folds)))
     return folds, idx
 

@@ -258,7 +258,7 @@ class AHRSDataModule(pl.LightningDataModule):
     """Splits from ``data_cfg`` (via :func:`tcn_ahrs.datasets.load_split`) as device-resident stores.
 
     Args:
-        data_cfg:   the ``data`` config group (``tcn_ahrs/conf/data/*.yaml``, ``data/README.md``).
+        data_cfg:   the ``data`` config group (``conf/data/*.yaml``, ``data/README.md``).
         axes:       model axes (6/9).
         window:     training window length, samples.
         stride:     spacing of admissible window starts, samples.

@@ -137,7 +137,7 @@ def markdown(result: Mapping[str, Any]) -> str:
 
 
 def finetune_main(cfg) -> Dict[str, Any]:
-    """``scripts/benchmark.py finetune``: the ``finetune`` section of ``tcn_ahrs/conf/benchmark.yaml``."""
+    """``scripts/benchmark.py finetune``: the ``finetune`` section of ``conf/benchmark.yaml``."""
     from .lodo import section_and_datasets
 
     t, data_cfgs = section_and_datasets(cfg, "finetune")

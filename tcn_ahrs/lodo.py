@@ -49,7 +49,7 @@ def own_model(nested_json: Path) -> Optional[Dict[str, float]]:
 
 
 def compose_train(args: Sequence[str]):
-    """``tcn_ahrs/conf/train.yaml`` with ``args``, inside a running Hydra app (``scripts/benchmark.py``,
+    """``conf/train.yaml`` with ``args``, inside a running Hydra app (``scripts/benchmark.py``,
     whose search path is the same ``conf/``) or outside one."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -173,7 +173,7 @@ def markdown(result: Mapping[str, Any]) -> str:
 
 
 def section_and_datasets(cfg, section: str):
-    """A benchmark mode's section of ``tcn_ahrs/conf/benchmark.yaml`` as a dict, and {dataset: its data
+    """A benchmark mode's section of ``conf/benchmark.yaml`` as a dict, and {dataset: its data
     config} for its ``datasets`` (default :data:`DATASETS`), those absent under ``../shared``
     skipped with a warning."""
     from omegaconf import OmegaConf
@@ -190,7 +190,7 @@ def section_and_datasets(cfg, section: str):
 
 
 def lodo_main(cfg) -> Dict[str, Any]:
-    """``scripts/benchmark.py lodo``: the ``lodo`` section of ``tcn_ahrs/conf/benchmark.yaml``."""
+    """``scripts/benchmark.py lodo``: the ``lodo`` section of ``conf/benchmark.yaml``."""
     t, data_cfgs = section_and_datasets(cfg, "lodo")
     out = Path(cfg.get("out") or "runs/benchmark/lodo")
     res = lodo(data_cfgs, Path(t.get("runs") or "runs/lodo"), str(t.get("experiment") or "general6_res"),

@@ -53,7 +53,7 @@ def cell_recordings(data_cfg: Mapping, own: bool) -> Optional[str]:
 
 
 def own_datasets(data_name: str) -> List[str]:
-    """The datasets a checkpoint trained on: its data's ``parts`` (``tcn_ahrs/conf/data/general6.yaml``)
+    """The datasets a checkpoint trained on: its data's ``parts`` (``conf/data/general6.yaml``)
     or its data alone."""
     from omegaconf import OmegaConf
 
@@ -180,7 +180,7 @@ def markdown(result: Mapping[str, Any]) -> str:
 
 def transfer_main(cfg) -> Dict[str, Any]:
     """``scripts/benchmark.py transfer``: ``transfer.ckpts`` {label: path} (default: every
-    shipped model, :func:`shipped_paths`), ``transfer.datasets`` (tcn_ahrs/conf/data names), ``transfer.baselines``."""
+    shipped model, :func:`shipped_paths`), ``transfer.datasets`` (conf/data names), ``transfer.baselines``."""
     from omegaconf import OmegaConf
 
     conf = conf_path("data")

@@ -59,7 +59,7 @@ def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
     configs must come from inside the wheel."""
     src = tmp_path / "src"
     src.mkdir()
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "pyproject.toml", "README.md", "tcn_ahrs"],
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "pyproject.toml", "setup.py", "README.md", "tcn_ahrs", "conf"],
                            cwd=REPO, capture_output=True, text=True, check=True).stdout.split()
     if not files:
         pytest.skip("not a git checkout")

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "tcn_ahrs"
+CONF = PACKAGE.parent / "conf"  # installed as tcn_ahrs.conf (setup.py's package_dir)
 
 # Ground floor first. A unit is a top-level module or package of tcn_ahrs ("" = the package's
 # own __init__: ImuSequence, DataError, __version__). A module may import from its own floor and
@@ -52,6 +53,8 @@ MAX_LINES = 450
 
 
 def _module_name(path: Path) -> str:
+    if path.parent == CONF:
+        return "tcn_ahrs.conf" + ("" if path.name == "__init__.py" else "." + path.stem)
     parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
@@ -65,6 +68,8 @@ def _unit(module: str) -> str:
 
 def _is_module(dotted: str) -> bool:
     rel = Path(*dotted.split(".")[1:]) if "." in dotted else Path()
+    if rel.parts[:1] == ("conf",):
+        return (CONF / Path(*rel.parts[1:])).with_suffix(".py").is_file() or (CONF / Path(*rel.parts[1:]) / "__init__.py").is_file()
     return (PACKAGE / rel).with_suffix(".py").is_file() or (PACKAGE / rel / "__init__.py").is_file()
 
 
@@ -92,7 +97,7 @@ def _imports(path: Path):
 
 
 def _sources():
-    return sorted(PACKAGE.rglob("*.py"))
+    return sorted(PACKAGE.rglob("*.py")) + sorted(CONF.glob("*.py"))
 
 
 def test_every_unit_has_a_floor():

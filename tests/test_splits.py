@@ -1,4 +1,4 @@
-"""Splits as configuration: tcn_ahrs/conf/data/*.yaml, load_split semantics, the summary and the script."""
+"""Splits as configuration: conf/data/*.yaml, load_split semantics, the summary and the script."""
 from __future__ import annotations
 
 import subprocess

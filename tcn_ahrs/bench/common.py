@@ -143,7 +143,7 @@ def model_config(axes: int) -> Dict[str, Any]:
 
 
 def shipped_config(axes: int) -> Dict[str, Any]:
-    """The default model of ``tcn_ahrs/conf/model/ahrs.yaml`` (the learned closed loop) for ``axes``."""
+    """The default model of ``conf/model/ahrs.yaml`` (the learned closed loop) for ``axes``."""
     from omegaconf import OmegaConf
 
     from ..config import conf_path

@@ -2,7 +2,7 @@
 
 Every ``*.bag`` file (ROS 1) and every folder holding a ``metadata.yaml`` (ROS 2) under ``root``
 is a recording, named by its path relative to ``root`` (``*.bag`` without the suffix). Topics
-come from the data config (``tcn_ahrs/conf/data/rosbag.yaml``)::
+come from the data config (``conf/data/rosbag.yaml``)::
 
     topics:
       imu: /imu/data            # sensor_msgs/Imu (required): angular_velocity rad/s,

@@ -19,7 +19,7 @@ _D = EvaluateConfig()  # the defaults of keys a hand-built config may lack
 
 
 def dataset_axes(name: str) -> int | None:
-    """The axes a named dataset's config declares (``tcn_ahrs/conf/data/<name>.yaml``: 6 for
+    """The axes a named dataset's config declares (``conf/data/<name>.yaml``: 6 for
     EuRoC and TUM VI, which have no magnetometer); None for a dataset without one."""
     from omegaconf import OmegaConf
 

@@ -272,10 +272,10 @@ FORMATS = ("torchscript", "onnx", "export", "c")
 
 def export_main(cfg) -> Dict[str, Path]:
     """``tcn-ahrs export ckpt=PATH out=FILE [format=torchscript|onnx|export|c] [mode=batch|streaming|both]
-    [rate=HZ]`` (``tcn_ahrs/conf/export.yaml``): writes the files and prints one line per file."""
+    [rate=HZ]`` (``conf/export.yaml``): writes the files and prints one line per file."""
     from ..config import ExportConfig, keys
 
-    KEYS = keys(ExportConfig)  # tcn_ahrs/conf/export.yaml's keys: tcn_ahrs/config/scripts.py
+    KEYS = keys(ExportConfig)  # conf/export.yaml's keys: tcn_ahrs/config/scripts.py
     unknown = set(cfg) - KEYS
     if unknown:
         raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")

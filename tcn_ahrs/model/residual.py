@@ -12,7 +12,7 @@ backbone (tests/test_residual.py)::
 training set, so a new device is read the same way. ``g_θ`` and ``z`` are two causal TCNs whose
 output layers start at zero (ω_in = ω, τ = 1). ``c_gyro`` (applied in eval mode only; the network
 learns within ``s_gyro``), ``w`` and the trust scales ``c`` are the recipe's inference knobs
-(``tcn_ahrs/conf/model/residual.yaml``: c_gyro 0 and w 0.5, chosen on BROAD's development folds; c = 1).
+(``conf/model/residual.yaml``: c_gyro 0 and w 0.5, chosen on BROAD's development folds; c = 1).
 ``c = 0`` everywhere turns the backbone into strapdown integration of the corrected gyro.
 
 Training needs no gradient through the filter (the filter's tensor reading costs ~9 ms per

@@ -1,7 +1,7 @@
 """One entry point for every paper's experiment: ``tcn-ahrs reproduce paper=<name>``.
 
 Each experiment is one module here (or anywhere importable, named by its config's ``module``) with
-``main(cfg, out) -> results`` (cfg: its ``tcn_ahrs/conf/paper/<name>.yaml``), printing the paper's table with the paper's numbers beside ours and
+``main(cfg, out) -> results`` (cfg: its ``conf/paper/<name>.yaml``), printing the paper's table with the paper's numbers beside ours and
 writing results.json, results.md, trajectories and plots to ``out``.
 """
 from __future__ import annotations
@@ -53,7 +53,7 @@ def run(name: str, cfg: Mapping[str, Any], out: Path) -> Dict[str, Any]:
         from ..config import check_keys
         from ..config.papers import PAPERS
 
-        if name in PAPERS:  # tcn_ahrs/conf/paper/<name>.yaml's keys: tcn_ahrs/config/papers.py
+        if name in PAPERS:  # conf/paper/<name>.yaml's keys: tcn_ahrs/config/papers.py
             check_keys(cfg, PAPERS[name], f"paper {name}")
     try:
         mod = importlib.import_module(str(module or name))

@@ -1,7 +1,7 @@
 """The odometry paper's experiment (``es-ekf-imu-encoder-magnetometer``, its Table 2): ES-EKF,
 EKF and UKF on the same simulated drives, absolute position error (APE) by ``evo``.
 
-``python scripts/reproduce.py paper=es_ekf_odometry`` (options: ``tcn_ahrs/conf/paper/es_ekf_odometry.yaml``)
+``python scripts/reproduce.py paper=es_ekf_odometry`` (options: ``conf/paper/es_ekf_odometry.yaml``)
 
 Scenarios (each over seeded runs of :func:`tcn_ahrs.nav.diff_drive.simulate_drive`):
 

@@ -2,7 +2,7 @@
 localisation with a fixed particle count and with KLD-sampling, on the simulated arena of
 :mod:`tcn_ahrs.nav.arena`.
 
-``python scripts/reproduce.py paper=kld_particle_filter`` (options: ``tcn_ahrs/conf/paper/kld_particle_filter.yaml``)
+``python scripts/reproduce.py paper=kld_particle_filter`` (options: ``conf/paper/kld_particle_filter.yaml``)
 
 * The report's table: the robot drives a rectangle ``laps`` times steered by the filter; the mean
   deviation of the true end pose from the start pose (m, deg) and the mean update time, for the

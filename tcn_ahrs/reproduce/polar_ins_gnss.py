@@ -2,7 +2,7 @@
 Tables 1-2 and Figs. 3-4): switching an INS/GNSS filter from the geographic (n) frame to the grid
 (G) frame with and without the covariance transformation.
 
-``python scripts/reproduce.py paper=polar_ins_gnss`` (options: ``tcn_ahrs/conf/paper/polar_ins_gnss.yaml``)
+``python scripts/reproduce.py paper=polar_ins_gnss`` (options: ``conf/paper/polar_ins_gnss.yaml``)
 
 Flights (:mod:`tcn_ahrs.nav.polar_sim`, great circles, navigation-grade IMU at 200 Hz, GNSS 1 Hz):
 

@@ -2,7 +2,7 @@
 positioning with the plain complementary Kalman filter (CKF) and the adaptive-robust one (ARCKF),
 on the simulated trolley of :mod:`tcn_ahrs.nav.uwb_sim`.
 
-``python scripts/reproduce.py paper=uwb_arckf`` (options: ``tcn_ahrs/conf/paper/uwb_arckf.yaml``)
+``python scripts/reproduce.py paper=uwb_arckf`` (options: ``conf/paper/uwb_arckf.yaml``)
 
 * Table 4 (adaptivity): Route 1 (rectangle, two laps) with 1-4 single-sample 50 dBW accelerometer
   outliers; horizontal RMSE per filter.

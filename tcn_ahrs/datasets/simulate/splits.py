@@ -1,4 +1,4 @@
-"""Dataset splits of the simulator (``tcn_ahrs/conf/data/simulated.yaml``)."""
+"""Dataset splits of the simulator (``conf/data/simulated.yaml``)."""
 from __future__ import annotations
 
 from typing import Any, Dict, List, Optional
@@ -9,7 +9,7 @@ from . import PROFILES, SPLITS, simulate
 
 
 # =============================================================================
-# Dataset splits (tcn_ahrs/conf/data/simulated.yaml)
+# Dataset splits (conf/data/simulated.yaml)
 # =============================================================================
 
 
@@ -27,7 +27,7 @@ def split_plan(data_cfg, split: Optional[str] = None) -> List[Dict[str, Any]]:
     ``splits.p.profiles[i % len(profiles)]``; seed ranges of the parts must be disjoint.
     """
     cfg = _plain(data_cfg)
-    src = "tcn_ahrs/conf/data/simulated.yaml"
+    src = "conf/data/simulated.yaml"
     split = split or cfg.get("split") or "train"
     if split not in SPLITS:
         raise ValueError(f"{src}: field 'split': expected one of {list(SPLITS)}, got {split!r}")
@@ -73,7 +73,7 @@ def split_plan(data_cfg, split: Optional[str] = None) -> List[Dict[str, Any]]:
 
 def load_split(data_cfg, split: Optional[str] = None) -> List[ImuSequence]:
     """Generate the recordings of ``split`` (train | val | test | trainval | all) from
-    ``data_cfg`` (see ``tcn_ahrs/conf/data/simulated.yaml``). ``trainval`` = train + val recordings,
+    ``data_cfg`` (see ``conf/data/simulated.yaml``). ``trainval`` = train + val recordings,
     ``all`` = train + val + test; every split uses the same device (``device_seed``)."""
     return [simulate(**kw) for kw in split_plan(data_cfg, split)]
 
