@@ -37,6 +37,10 @@ Blocks (:data:`BLOCKS`):
     Leave one dataset out, ``tcn-ahrs benchmark lodo`` (6 axes) and ``tcn-ahrs benchmark lodo
     lodo.experiment=general9_res lodo.runs=runs/lodo9`` → ``runs/benchmark/lodo/lodo.json``, copied to
     ``docs/results/json/lodo<axes>.json``, rendered by :func:`tcn_ahrs.lodo.markdown`.
+``finetune`` (docs/results.md)
+    Fine-tuning on two recordings of a device the general model never saw, ``tcn-ahrs benchmark
+    finetune`` → ``runs/benchmark/finetune/finetune.json``, copied to ``docs/results/json/finetune.json``,
+    rendered by :func:`tcn_ahrs.finetune.markdown`.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -56,6 +60,7 @@ if str(REPO) not in sys.path:  # this checkout's package, not another installed 
     sys.path.insert(0, str(REPO))
 
 from tcn_ahrs import lodo as _lodo  # noqa: E402
+from tcn_ahrs import finetune as _finetune  # noqa: E402
 from tcn_ahrs import transfer as _transfer  # noqa: E402
 
 TRANSFER_JSON = "docs/results/json/transfer.json"
@@ -236,6 +241,7 @@ BLOCKS: Dict[str, Block] = {
     "device_check": Block(DEVICE_CHECK_JSON, device_check_table, ("docs/results.md",)),
     **{f"lodo{a}": Block(f"docs/results/json/lodo{a}.json", lambda result: _lodo.markdown(result), ("docs/results.md",))
        for a in (6, 9)},
+    "finetune": Block("docs/results/json/finetune.json", lambda result: _finetune.markdown(result), ("docs/results.md",)),
 }
 
 
