@@ -10,13 +10,13 @@
     python scripts/benchmark.py faults [faults.seeds=[0,1,2]] [faults.ckpt=PATH]
 
 accuracy: every method incl. the PyPI peers on one dataset through the evaluation runner
-          (tcn_ahrs.compare.benchmark_accuracy_main; same code as scripts/compare.py).
+          (tcn_ahrs.experiments.compare.benchmark_accuracy_main; same code as scripts/compare.py).
 speed:    tcn_ahrs.bench.main(cfg) (imported only in that mode).
-transfer: tcn_ahrs.transfer.transfer_main(cfg): every checkpoint on every dataset it can read, on
+transfer: tcn_ahrs.experiments.transfer.transfer_main(cfg): every checkpoint on every dataset it can read, on
           recordings it never saw, beside the backbone and the classical filters.
-lodo:     tcn_ahrs.lodo.lodo_main(cfg): leave one dataset out: a general model trained on the
+lodo:     tcn_ahrs.experiments.lodo.lodo_main(cfg): leave one dataset out: a general model trained on the
           others (trained here unless present), scored on the left-out dataset.
-finetune: tcn_ahrs.finetune.finetune_main(cfg): those models fine-tuned on k recordings of the
+finetune: tcn_ahrs.experiments.finetune.finetune_main(cfg): those models fine-tuned on k recordings of the
           left-out dataset (with and without ground truth), scored on its other recordings.
 faults:   tcn_ahrs.bench.faults.faults_main(cfg): sensor faults injected into simulated recordings,
           the backbone with and without its health checks beside VQF and the default model.

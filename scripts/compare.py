@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Compare attitude estimators on one dataset: paper-style tables (tcn_ahrs/compare.py).
+"""Compare attitude estimators on one dataset: paper-style tables (tcn_ahrs/experiments/compare.py).
 
     python scripts/compare.py data=broad data.split=test tune=true
     python scripts/compare.py data=euroc data.split=val tune=true peers=true

@@ -55,7 +55,7 @@ def general(name, ckpt, lodo_json, tr_json, log=None):
     """The card of a general model (``experiment=<name>_res``): no nested folds of one dataset;
     its recipe's leave-one-dataset-out table instead."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from tcn_ahrs.lodo import markdown as lodo_markdown
+    from tcn_ahrs.experiments.lodo import markdown as lodo_markdown
 
     meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)
     model = model_from_checkpoint(ckpt)

@@ -19,7 +19,7 @@ Blocks (:data:`BLOCKS`):
 ``transfer_matrix`` (docs/results.md)
     The cross-dataset matrix, ``python scripts/benchmark.py transfer`` →
     ``runs/benchmark/transfer/transfer.json``, rendered by the very function that writes the
-    run's own ``transfer.md`` (:func:`tcn_ahrs.transfer.markdown`).
+    run's own ``transfer.md`` (:func:`tcn_ahrs.experiments.transfer.markdown`).
 ``deploy`` (docs/deployment.md)
     The speed benchmark's ``deploy`` section (``tcn-ahrs benchmark speed '+speed.sections=[deploy]'``
     → ``speed.json``): every runtime side by side and the shipped models' footprint.
@@ -27,7 +27,7 @@ Blocks (:data:`BLOCKS`):
     The nested family search (``tcn-ahrs search data=<dataset> ...`` → ``runs/search/<dataset>/summary.json``,
     copied to ``docs/results/json/search_<dataset>.json``): per outer fold the choice of each seed
     beside the best classical filter with its defaults, raw and calibrated
-    (:func:`tcn_ahrs.search.summary_markdown`, the run's own ``search.md`` summary).
+    (:func:`tcn_ahrs.experiments.search.summary_markdown`, the run's own ``search.md`` summary).
 ``device_check`` (docs/results.md)
     The device check (no ground truth) on and off: ``tcn-ahrs evaluate data=<d> data.split=trainval
     'baselines=[vqf,backbone,ecf,mahony]' device_check=true|false`` per dataset, the runs' mean AAE
@@ -36,11 +36,11 @@ Blocks (:data:`BLOCKS`):
 ``lodo6`` / ``lodo9`` (docs/results.md)
     Leave one dataset out, ``tcn-ahrs benchmark lodo`` (6 axes) and ``tcn-ahrs benchmark lodo
     lodo.experiment=general9_res lodo.runs=runs/lodo9`` → ``runs/benchmark/lodo/lodo.json``, copied to
-    ``docs/results/json/lodo<axes>.json``, rendered by :func:`tcn_ahrs.lodo.markdown`.
+    ``docs/results/json/lodo<axes>.json``, rendered by :func:`tcn_ahrs.experiments.lodo.markdown`.
 ``finetune`` (docs/results.md)
     Fine-tuning on two recordings of a device the general model never saw, ``tcn-ahrs benchmark
     finetune`` → ``runs/benchmark/finetune/finetune.json``, copied to ``docs/results/json/finetune.json``,
-    rendered by :func:`tcn_ahrs.finetune.markdown`.
+    rendered by :func:`tcn_ahrs.experiments.finetune.markdown`.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -59,9 +59,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:  # this checkout's package, not another installed copy
     sys.path.insert(0, str(REPO))
 
-from tcn_ahrs import lodo as _lodo  # noqa: E402
-from tcn_ahrs import finetune as _finetune  # noqa: E402
-from tcn_ahrs import transfer as _transfer  # noqa: E402
+from tcn_ahrs.experiments import lodo as _lodo  # noqa: E402
+from tcn_ahrs.experiments import finetune as _finetune  # noqa: E402
+from tcn_ahrs.experiments import transfer as _transfer  # noqa: E402
 
 TRANSFER_JSON = "docs/results/json/transfer.json"
 DEPLOY_JSON = "docs/results/json/deploy.json"
@@ -151,7 +151,7 @@ class Block(NamedTuple):
 
 def _search_summary(result: Mapping[str, Any]) -> str:
     """The search's command (from its recorded config) and its summary table."""
-    from tcn_ahrs.search import summary_markdown
+    from tcn_ahrs.experiments.search import summary_markdown
 
     cfg = result.get("config") or {}
     hy = lambda v: "[" + ",".join(str(x) for x in v) + "]" if isinstance(v, list) else (  # noqa: E731

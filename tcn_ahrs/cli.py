@@ -29,19 +29,19 @@ class Command(NamedTuple):
 
 
 COMMANDS: Dict[str, Command] = {
-    "train": Command("train", "tcn_ahrs.train:train_main",
+    "train": Command("train", "tcn_ahrs.training.run:train_main",
                      "train a model, then evaluate it on held-out recordings"),
     "evaluate": Command("evaluate", "tcn_ahrs.evaluate.main:evaluate_main",
                         "score a checkpoint (default: the general model) beside classical filters"),
     "export": Command("export", "tcn_ahrs.export:export_main",
                       "a checkpoint as a self-contained deployment file"),
-    "compare": Command("compare", "tcn_ahrs.compare:compare_main",
+    "compare": Command("compare", "tcn_ahrs.experiments.compare:compare_main",
                        "every classical filter (and a checkpoint) on one dataset"),
     "benchmark": Command("benchmark", "tcn_ahrs.cli:benchmark_main",
                          "accuracy | speed | transfer | lodo | finetune | faults"),
-    "crossval": Command("crossval", "tcn_ahrs.crossval:crossval_main",
+    "crossval": Command("crossval", "tcn_ahrs.experiments.crossval:crossval_main",
                         "nested leave-recordings-out folds of a recipe"),
-    "search": Command("search", "tcn_ahrs.search:search_main",
+    "search": Command("search", "tcn_ahrs.experiments.search:search_main",
                       "nested search over estimator families (+ static calibration) for a device"),
     "reproduce": Command("reproduce", "tcn_ahrs.reproduce:reproduce_main",
                          "a navigation paper's tables (paper=...)"),
@@ -52,10 +52,10 @@ COMMANDS: Dict[str, Command] = {
 COMMAND_ENV = "TCN_AHRS_COMMAND"
 
 BENCHMARK_MODES = {
-    "accuracy": "tcn_ahrs.compare:benchmark_accuracy_main",
-    "transfer": "tcn_ahrs.transfer:transfer_main",
-    "lodo": "tcn_ahrs.lodo:lodo_main",
-    "finetune": "tcn_ahrs.finetune:finetune_main",
+    "accuracy": "tcn_ahrs.experiments.compare:benchmark_accuracy_main",
+    "transfer": "tcn_ahrs.experiments.transfer:transfer_main",
+    "lodo": "tcn_ahrs.experiments.lodo:lodo_main",
+    "finetune": "tcn_ahrs.experiments.finetune:finetune_main",
     "speed": "tcn_ahrs.bench:main",
     "faults": "tcn_ahrs.bench.faults:faults_main",
 }

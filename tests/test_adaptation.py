@@ -72,7 +72,7 @@ def test_self_supervised_fine_tuning_without_rest_to_judge_by_ships_the_start(tm
     """Held-out parts that never rest: no evidence without ground truth, so the run ships the
     starting model (its weights, marked as taking device-checked input) and says why."""
     from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint
-    from tcn_ahrs.train import train_main
+    from tcn_ahrs.training.run import train_main
     from test_general import _compose, _general_checkpoint
 
     init = _general_checkpoint(tmp_path, axes=6)
@@ -117,7 +117,7 @@ def test_a_part_that_never_rests_is_corrected_by_its_recordings_rest():
 def test_the_evidence_half_holds_half_of_the_scored_ground_truth():
     """Knobs on one half of each later part, evidence on the other, split by scored samples (BROAD
     scores no final rest: a split by samples left the evidence half with nothing to score)."""
-    from tcn_ahrs.train import _half
+    from tcn_ahrs.training.run import _half
 
     seq = simulate("walking", 20.0, 100.0, seed=1)
     seq.score_mask = np.arange(len(seq)) < 0.6 * len(seq)

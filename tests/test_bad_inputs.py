@@ -88,7 +88,7 @@ def test_streaming_step_error_leaves_the_state_as_if_the_sample_was_not_given(tm
     ("batch_size", 2.5, r"train.batch_size: expected an integer >= 1, got 2.5"),
 ])
 def test_numeric_train_values_are_checked_with_the_key_named(key, value, message):
-    from tcn_ahrs.train import check_train_values
+    from tcn_ahrs.training.run import check_train_values
 
     check_train_values({"lr": 0.001, "epochs": 3, "noise": {"gyro": 0.0}})  # valid
     with pytest.raises(ValueError, match=message):
@@ -373,7 +373,7 @@ def test_nothing_to_score_is_an_error_not_a_table_of_dashes():
 def test_training_a_folder_without_a_train_list_says_what_to_set(tmp_path):
     from hydra import compose, initialize_config_dir
 
-    from tcn_ahrs.train import train_main
+    from tcn_ahrs.training.run import train_main
 
     _recording(tmp_path)  # tmp_path/rec.csv
     conf = CONF_DIR
@@ -710,7 +710,7 @@ def test_duplicate_columns_misspelt_hdf5_attributes_and_non_utf8_files_are_named
 
 def test_config_values_fail_early_with_the_key_and_the_nearest_valid_value():
     from tcn_ahrs.estimators.registry import baseline_estimators
-    from tcn_ahrs.train import check_train_values
+    from tcn_ahrs.training.run import check_train_values
     from tcn_ahrs.validate import set_threads
 
     with pytest.raises(ValueError, match=r"threads: expected an integer >= 1, got -3"):

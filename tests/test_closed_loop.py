@@ -119,7 +119,7 @@ def test_scripted_scan_equals_python_scan(dtype):
 def test_gyro_error_term_starts_at_the_bias_seen_at_rest():
     from tcn_ahrs.data import SequenceStore
     from tcn_ahrs.datasets.simulate import simulate
-    from tcn_ahrs.train import rest_gyro_mean
+    from tcn_ahrs.training.run import rest_gyro_mean
 
     seq = simulate("static", 30.0, 100.0, seed=3)
     model = LearnedAHRS(axes=9, loop="closed")

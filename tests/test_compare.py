@@ -1,4 +1,4 @@
-"""tcn_ahrs.compare: method registry, tuning on training recordings only, batched filters,
+"""tcn_ahrs.experiments.compare: method registry, tuning on training recordings only, batched filters,
 heading-free scoring, tables, the Hydra entry points (short simulated recordings)."""
 import importlib.util
 import json
@@ -10,15 +10,15 @@ import pytest
 from omegaconf import OmegaConf
 from scipy.spatial.transform import Rotation
 
-from tcn_ahrs import compare as cmp
-from tcn_ahrs import tuning
+from tcn_ahrs.experiments import compare as cmp
+from tcn_ahrs.tuning import grid as tuning
 from tcn_ahrs.conventions import quat_xyzw_to_wxyz
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.estimators.base import EstimatorOutput, initial_quat
 from tcn_ahrs.estimators.classical import ESEKF, Madgwick
 from tcn_ahrs.evaluate import evaluate
 from tcn_ahrs.sequence import ImuSequence
-from tcn_ahrs.tuning import tune_grid
+from tcn_ahrs.tuning.grid import tune_grid
 from tcn_ahrs.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
@@ -77,7 +77,7 @@ def test_batched_tuning_matches_one_recording_at_a_time(sims):
     """The one tuner runs all clips x grid points in one padded call; each score equals the
     filter run on that recording alone with that point (different lengths: padding unscored)."""
     from tcn_ahrs.metrics import scored_metric
-    from tcn_ahrs.tuning import tune_method
+    from tcn_ahrs.tuning.grid import tune_method
 
     clips = [sims[0], sims[1].slice(0, 700)]
     best, table = tune_method("madgwick", 6, clips)
@@ -266,7 +266,7 @@ def test_ablation_table_layout(sims, tmp_path, monkeypatch):
         def __init__(self, name):
             self.name = name
 
-    from tcn_ahrs import columns
+    from tcn_ahrs.experiments import columns
 
     real_build = columns.build_estimator
     monkeypatch.setattr(columns, "build_estimator",
@@ -359,7 +359,7 @@ def test_tune_on_shipped_training_data_and_evaluate_on_an_own_folder(tmp_path, m
     training split, so data.split=all on the user's own folder is allowed (no overlap)."""
     from hydra import compose, initialize_config_dir
 
-    from tcn_ahrs import compare as cmp
+    from tcn_ahrs.experiments import compare as cmp
     from tcn_ahrs.datasets.simulate import simulate
 
     seq = simulate("slow_rotation", 8.0, 50.0, seed=1)

@@ -259,14 +259,14 @@ def test_schema_checks_catch_unknown_missing_and_wrong_types():
 
 
 def test_derived_key_sets_are_the_schemas():
-    from tcn_ahrs.compare import BENCHMARK_KEYS, COMPARE_KEYS
+    from tcn_ahrs.experiments.compare import BENCHMARK_KEYS, COMPARE_KEYS
     from tcn_ahrs.config import AugmentConfig, ClosedLoopConfig, ResidualConfig, TCNConfig, TrainConfig
     from tcn_ahrs.config.data import GenericDeclarations
     from tcn_ahrs.datasets.generic import ATTR_KEYS
     from tcn_ahrs.evaluate.main import EVAL_KEYS
     from tcn_ahrs.model.ahrs import CLOSED_LOOP_KEYS, MODEL_KEYS, TCN_KEYS
     from tcn_ahrs.model.residual import RESIDUAL_KEYS
-    from tcn_ahrs.train import AUGMENT_KEYS, TRAIN_KEYS
+    from tcn_ahrs.training.run import AUGMENT_KEYS, TRAIN_KEYS
 
     assert TRAIN_KEYS == keys(TrainConfig) and AUGMENT_KEYS == keys(AugmentConfig)
     assert EVAL_KEYS == keys(EvaluateConfig)
@@ -281,7 +281,7 @@ def test_class_defaults_are_the_schema_defaults():
     from tcn_ahrs.config import ClosedLoopConfig, TrainConfig
     from tcn_ahrs.model.ahrs import LearnedAHRS
     from tcn_ahrs.model.closed_loop import ClosedLoopFilter
-    from tcn_ahrs.train import AHRSModule
+    from tcn_ahrs.training.run import AHRSModule
 
     t = TrainConfig()
     sig = inspect.signature(AHRSModule.__init__).parameters
@@ -303,11 +303,11 @@ def test_class_defaults_are_the_schema_defaults():
 
 
 def test_train_main_checks_types_and_group_entries_before_any_work():
-    """scripts/train.py's checks (tcn_ahrs.train.check_config): wrong types and misspelt
+    """scripts/train.py's checks (tcn_ahrs.training.run.check_config): wrong types and misspelt
     callbacks/logger arguments are one-line ValueErrors naming the key (exit 2 in the scripts)."""
     from hydra import compose as _c
 
-    from tcn_ahrs.train import check_config
+    from tcn_ahrs.training.run import check_config
 
     def cfg(*over):
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

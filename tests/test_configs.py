@@ -25,7 +25,7 @@ def _options(group):
 @pytest.mark.parametrize("experiment", _options("experiment"))
 def test_every_experiment_composes_and_builds_its_model(experiment):
     from tcn_ahrs.model.ahrs import LearnedAHRS
-    from tcn_ahrs.train import TRAIN_KEYS, check_train_values
+    from tcn_ahrs.training.run import TRAIN_KEYS, check_train_values
     from tcn_ahrs.validate import check_keys
 
     cfg = _compose("train", [f"experiment={experiment}"])
@@ -43,7 +43,7 @@ def test_every_trainer_option_composes(trainer, tmp_path):
     cfg = _compose("train", [f"trainer={trainer}"])
     assert {"accelerator", "devices", "precision"} <= set(cfg.trainer)
     if trainer in ("default", "cpu"):  # the others need a GPU / processes to instantiate
-        from tcn_ahrs.train import build_trainer
+        from tcn_ahrs.training.run import build_trainer
 
         t = build_trainer(cfg, tmp_path, "val/aae_deg")
         assert t.max_epochs == int(cfg.train.epochs)
@@ -57,7 +57,7 @@ def test_every_data_option_composes_with_every_script(data):
 
 
 def test_script_key_checks_accept_their_own_yaml():
-    from tcn_ahrs.compare import BENCHMARK_KEYS, COMPARE_KEYS
+    from tcn_ahrs.experiments.compare import BENCHMARK_KEYS, COMPARE_KEYS
     from tcn_ahrs.evaluate.main import EVAL_KEYS
 
     top = lambda cfg: set(cfg) - {"data", "hydra"}  # noqa: E731

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from tcn_ahrs.crossval import crossval_main, summarize
+from tcn_ahrs.experiments.crossval import crossval_main, summarize
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.conf import CONF_DIR
 
@@ -51,7 +51,7 @@ def test_crossval_runs_every_fold(tmp_path):
 def test_inner_validation_never_holds_the_outer_fold(tmp_path):
     """Nested folds: with >= 3 folds the next fold validates, whole; with fewer, the later parts of
     the other recordings; the outer fold is in neither."""
-    from tcn_ahrs.crossval import _fold_cfg, inner_split
+    from tcn_ahrs.experiments.crossval import _fold_cfg, inner_split
 
     names = [f"r{i}" for i in range(4)]
     for i, n in enumerate(names):
@@ -95,7 +95,7 @@ def test_residual_model_chooses_its_knobs_on_the_inner_fold_and_can_choose_again
     import json
 
     from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint
-    from tcn_ahrs.knobs import residual_knob_points
+    from tcn_ahrs.tuning.knobs import residual_knob_points
 
     for i, prof in enumerate(["slow_rotation", "walking", "fast_rotation"]):
         _write(tmp_path / f"r{i}.csv", simulate(prof, 30.0, 50.0, seed=i))

@@ -65,10 +65,10 @@ def test_every_generated_block_equals_its_json():
 
 def test_the_readme_summary_and_the_matrix_come_from_one_json():
     """The README's table is the matrix's run, compact: each checkpoint of the JSON is a row, each
-    scored cell's learned AAE appears as the matrix (``tcn_ahrs.transfer.markdown``) writes it."""
+    scored cell's learned AAE appears as the matrix (``tcn_ahrs.experiments.transfer.markdown``) writes it."""
     import json
 
-    from tcn_ahrs.transfer import markdown
+    from tcn_ahrs.experiments.transfer import markdown
 
     rt = results_tables()
     result = json.loads((REPO / rt.TRANSFER_JSON).read_text())

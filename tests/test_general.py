@@ -168,7 +168,7 @@ def test_a_general_checkpoint_runs_any_rate_in_its_range_without_a_warning(tmp_p
 
 
 def test_own_model_is_the_mean_over_recordings_of_its_nested_folds(tmp_path):
-    from tcn_ahrs.lodo import markdown, own_model
+    from tcn_ahrs.experiments.lodo import markdown, own_model
 
     p = tmp_path / "crossval.json"
     p.write_text(json.dumps({"folds": [
@@ -198,7 +198,7 @@ def test_fine_tuning_starts_from_the_checkpoint_with_or_without_ground_truth(tmp
     after training); supervision=self trains on recordings that have no ground truth at all."""
     from tcn_ahrs.checkpoint import model_from_checkpoint
     from tcn_ahrs.datasets.simulate import simulate
-    from tcn_ahrs.train import train_main
+    from tcn_ahrs.training.run import train_main
 
     init = _general_checkpoint(tmp_path, axes=9)
     tr = [simulate(p, 20.0, 100.0, s) for s, p in enumerate(["static", "walking"])]
@@ -221,7 +221,7 @@ def test_fine_tuning_starts_from_the_checkpoint_with_or_without_ground_truth(tmp
 
 
 def test_knobs_for_another_device_are_chosen_on_offset_copies_and_leave_the_recordings_alone():
-    from tcn_ahrs.knobs import with_gyro_offsets
+    from tcn_ahrs.tuning.knobs import with_gyro_offsets
 
     seqs = [_turning(), _turning(omega=(0.0, 0.2, 0.0))]
     before = [s.gyro.copy() for s in seqs]
@@ -237,7 +237,7 @@ def test_knobs_for_another_device_are_chosen_on_offset_copies_and_leave_the_reco
 def test_a_recording_resampled_for_the_rate_sweep_is_the_same_motion():
     from tcn_ahrs.data import sequence_tensors
     from tcn_ahrs.datasets.simulate import simulate
-    from tcn_ahrs.transfer import resampled
+    from tcn_ahrs.experiments.transfer import resampled
 
     seq = simulate("slow_rotation", 20.0, 200.0, 4, axes=6, noise_free=True)
     same = resampled(seq, 200.0)
@@ -252,7 +252,7 @@ def test_a_recording_resampled_for_the_rate_sweep_is_the_same_motion():
 
 
 def test_a_knob_point_may_win_on_one_number_only_under_the_either_rule():
-    from tcn_ahrs.knobs import knob_points_eligible
+    from tcn_ahrs.tuning.knobs import knob_points_eligible
 
     mean = np.array([[10.0, 1.0],    # the tuned backbone
                      [5.0, 1.0],     # AAE halved, inclination tied
@@ -272,7 +272,7 @@ def test_never_worse_knob_choice_is_scored_per_dataset_against_vqf_defaults():
     import copy
 
     from tcn_ahrs.datasets.simulate import simulate
-    from tcn_ahrs.knobs import tune_backbone
+    from tcn_ahrs.tuning.knobs import tune_backbone
 
     seqs = []
     for part, (profile, seed) in {"a": ("walking", 1), "b": ("slow_rotation", 2)}.items():

@@ -35,11 +35,11 @@ LAYERS = [
     {"model", "losses", "metrics", "checkpoint", "nav"},
     # one interface over classical, learned and peer estimators; the papers' reproductions
     {"estimators", "reproduce"},
-    # evaluation runs, tuning and knob selection, training data, comparison columns
-    {"evaluate", "tuning", "knobs", "data", "columns"},
-    # what a user runs: export, streaming runtimes, benchmarks, the experiments and training
-    {"export", "streaming", "bench", "transfer", "crossval", "lodo", "finetune", "compare", "train", "training",
-     "search"},
+    # evaluation runs, knob selection (tuning/: the classical grids, a learned model's knobs), training data
+    {"evaluate", "tuning", "data"},
+    # what a user runs: export, streaming runtimes, benchmarks, the experiments (experiments/:
+    # compare, crossval, search, transfer, lodo, finetune) and training (training/: the run and its parts)
+    {"export", "streaming", "bench", "experiments", "training"},
     # the command line (tcn-ahrs COMMAND): reaches the commands above by name
     {"cli", "__main__"},
 ]
@@ -195,8 +195,8 @@ def test_the_cycle_finder_finds_a_cycle():
 
 
 def test_the_scan_sees_function_local_and_relative_imports():
-    found = set(_imports(PACKAGE / "compare.py"))
-    assert any(t == "tcn_ahrs.tuning" for _, t in found)        # `from .tuning import ...` inside a function
+    found = set(_imports(PACKAGE / "experiments" / "compare.py"))
+    assert any(t == "tcn_ahrs.tuning.grid" for _, t in found)        # `from ..tuning.grid import ...` inside a function
     assert ("tcn_ahrs.so3" in {t for _, t in _imports(PACKAGE / "filters" / "ecf.py")})  # `from .. import so3`
 
 

@@ -127,7 +127,7 @@ def test_import_without_peer_packages(monkeypatch):
         peers.VQFEstimator(axes=9)
     with pytest.raises(ImportError, match="imufusion"):
         peers.ImufusionEstimator(axes=6)
-    from tcn_ahrs.compare import MethodSpec, build_estimators
+    from tcn_ahrs.experiments.compare import MethodSpec, build_estimators
 
     with pytest.warns(UserWarning, match=r"pip install -e \.\[peers\]"):
         assert build_estimators([MethodSpec("vqf9d", "vqf", 9)])[0] == []

@@ -131,7 +131,7 @@ def test_a_classical_filter_is_one_module_and_one_config(plugin_dirs):
         assert a["aae_deg"] == pytest.approx(b["aae_deg"], rel=1e-6, abs=1e-9)
     assert 0.0 < ours["mean"]["aae_deg"] < 10.0
     # and the tuner batches its grid like a built-in's: the true scale (1) wins
-    from tcn_ahrs.tuning import tune_method
+    from tcn_ahrs.tuning.grid import tune_method
 
     best, ranked = tune_method("scaled_gyro", 9, recordings())
     assert best == {"gyro_scale": 1.0} and len(ranked) == 3

@@ -160,7 +160,7 @@ def test_knob_selection_falls_back_to_integration_only_where_correction_hurts():
     accelerations -> strapdown (every correction hurts); a 1.5-2 deg/s gyro bias -> the backbone.
     The reference point (tuned backbone alone) is always in the table."""
     from tcn_ahrs.datasets.simulate import simulate
-    from tcn_ahrs.knobs import select_residual_knobs
+    from tcn_ahrs.tuning.knobs import select_residual_knobs
 
     exact = simulate("walking", 30.0, 100.0, seed=1, axes=6, noise_free=True)
     biased = simulate("slow_rotation", 60.0, 100.0, seed=2, axes=6, gyro_bias_range_dps=(1.5, 2.0))

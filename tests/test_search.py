@@ -1,4 +1,4 @@
-"""The nested family search (tcn_ahrs.search): the choice rule, and on simulated recordings a
+"""The nested family search (tcn_ahrs.experiments.search): the choice rule, and on simulated recordings a
 family that cannot win is not chosen, the search resumes from its SQLite studies, and its
 numbers are the evaluation runner's."""
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tcn_ahrs import search
+from tcn_ahrs.experiments import search
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.evaluate import evaluate
 

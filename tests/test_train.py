@@ -16,7 +16,7 @@ from omegaconf.errors import ConfigAttributeError
 from tcn_ahrs.checkpoint import CheckpointError, atomic_save, check_layout, load_checkpoint, model_from_checkpoint
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.estimators.learned import LearnedEstimator
-from tcn_ahrs.train import train_main
+from tcn_ahrs.training.run import train_main
 from tcn_ahrs.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]

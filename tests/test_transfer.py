@@ -1,4 +1,4 @@
-"""The cross-dataset matrix (tcn_ahrs.transfer): which recordings a cell holds, and one real
+"""The cross-dataset matrix (tcn_ahrs.experiments.transfer): which recordings a cell holds, and one real
 cell end to end on the simulator with an untrained residual checkpoint (= the backbone)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from tcn_ahrs.checkpoint import atomic_save, layout_meta
-from tcn_ahrs.transfer import cell_recordings, markdown, transfer
+from tcn_ahrs.experiments.transfer import cell_recordings, markdown, transfer
 
 from test_residual import residual_model
 from tcn_ahrs.conf import CONF_DIR
@@ -49,7 +49,7 @@ def test_the_matrix_names_each_shipped_models_family(tmp_path):
     from pathlib import Path
 
     from tcn_ahrs.estimators.families import save_estimator
-    from tcn_ahrs.transfer import shipped_meta, shipped_paths
+    from tcn_ahrs.experiments.transfer import shipped_meta, shipped_paths
 
     root = Path(__file__).resolve().parents[1] / "checkpoints"
     save_estimator(tmp_path / "mine6.json", "ecf", 6, {"k_norm": 0.1, "a_min": 1.0}, None, {"dataset": "simulated"})

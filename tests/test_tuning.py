@@ -1,4 +1,4 @@
-"""Tests of tcn_ahrs.tuning (batched grid search of classical filter parameters)."""
+"""Tests of tcn_ahrs.tuning.grid (batched grid search of classical filter parameters)."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ import pytest
 from tcn_ahrs.estimators.base import initial_quat
 from tcn_ahrs.estimators.classical import ESEKF, ClosedLoopECF, Madgwick, Mahony
 from tcn_ahrs.sequence import ImuSequence
-from tcn_ahrs.tuning import evaluate_params, grid_combinations, tune_gradient, tune_grid
+from tcn_ahrs.tuning.grid import evaluate_params, grid_combinations, tune_gradient, tune_grid
 
 from synthetic_filters import simulate, wavy
 

@@ -131,7 +131,7 @@ def faults_main(cfg) -> Dict[str, Any]:
     """``scripts/benchmark.py faults``: ``faults.seeds``, ``faults.ckpt`` (null: no learned column)."""
     from omegaconf import OmegaConf
 
-    from ..transfer import write_result
+    from ..experiments.transfer import write_result
 
     f = OmegaConf.to_container(cfg.faults, resolve=True)  # defaults: tcn_ahrs/config/scripts.py FaultsSection
     result = fault_table(tuple(f["seeds"]), f["ckpt"])

@@ -102,7 +102,7 @@ def _train_setup(p: Dict[str, Any], device: str, seed: int):
 
 def make_train_step(variant: str, p: Dict[str, Any], device: str, seed: int = 0):
     """Build one variant's full training step (gather + augment + forward + loss + backward +
-    AdamW step, as :meth:`tcn_ahrs.train.AHRSModule.training_step`) -> (step(), info dict).
+    AdamW step, as :meth:`tcn_ahrs.training.run.AHRSModule.training_step`) -> (step(), info dict).
     Builds (and for ``compile``/``cuda_graphs`` compiles/captures) before returning."""
     from ..data import augment
     from ..losses import increment_loss

@@ -13,7 +13,7 @@ CLOSED_VARIANTS = ("eager", "tensor_scan", "threads1", "bf16", "compile")
 
 
 def closed_loop_step(variant: str, p: Dict[str, Any], device: str, seed: int, module, model, store, opt):
-    """The shipped recipe's step (:meth:`tcn_ahrs.train.AHRSModule._closed_loop_step`, experiment
+    """The shipped recipe's step (:meth:`tcn_ahrs.training.run.AHRSModule._closed_loop_step`, experiment
     broad9_cl): B streams x one chunk of ``window`` samples after ``receptive_field - 1`` samples
     of context; the calibration networks over all of it (float32), the closed loop over the chunk,
     :func:`~tcn_ahrs.losses.attitude_loss`, backward, AdamW. Variants: ``eager`` (the recipe: on

@@ -60,7 +60,7 @@ class CompareConfig:
 
 @dataclass
 class TransferSection:
-    """benchmark ``transfer:`` (tcn_ahrs.transfer, the cross-dataset matrix)."""
+    """benchmark ``transfer:`` (tcn_ahrs.experiments.transfer, the cross-dataset matrix)."""
     ckpts: Optional[Dict[str, str]] = None  # null: every checkpoints/*.ckpt and *.json
     datasets: Optional[List[str]] = None
     baselines: Optional[List[str]] = None
@@ -69,7 +69,7 @@ class TransferSection:
 
 @dataclass
 class LodoSection:
-    """benchmark ``lodo:`` (tcn_ahrs.lodo, leave one dataset out)."""
+    """benchmark ``lodo:`` (tcn_ahrs.experiments.lodo, leave one dataset out)."""
     datasets: Optional[List[str]] = None
     experiment: str = "general6_res"
     overrides: List[str] = field(default_factory=list)
@@ -83,7 +83,7 @@ class LodoSection:
 
 @dataclass
 class FinetuneSection:
-    """benchmark ``finetune:`` (tcn_ahrs.finetune)."""
+    """benchmark ``finetune:`` (tcn_ahrs.experiments.finetune)."""
     datasets: Optional[List[str]] = None
     k: int = 2
     modes: List[str] = field(default_factory=lambda: ["gt", "self"])

@@ -122,7 +122,7 @@ class CrossvalSection:
 
 @dataclass
 class SearchSection:
-    """``search:`` (conf/search.yaml = train.yaml + this section; tcn_ahrs.search)."""
+    """``search:`` (conf/search.yaml = train.yaml + this section; tcn_ahrs.experiments.search)."""
     folds: Optional[List[int]] = None  # outer fold indices to run (null: all of data.folds)
     inner: str = "auto"                # inner validation: folds (every other fold in turn) | fold | split | auto
     families: List[str] = field(default_factory=lambda: ["strapdown", "ecf", "mahony", "madgwick", "backbone"])

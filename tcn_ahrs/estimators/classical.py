@@ -27,7 +27,7 @@ Common behaviour:
   assumes the navigation frame's +y is magnetic north (the paper's ECF, Eq. 6);
 * ``quat_batch(seqs, init_quats, params)`` runs R recordings x P parameter sets in one
   batched filter call: the one code path behind ``run``, ``run_batch`` (the evaluation
-  runner), ``run_params`` and the tuner (:mod:`tcn_ahrs.tuning`);
+  runner), ``run_params`` and the tuner (:mod:`tcn_ahrs.tuning.grid`);
 * registered under their ``method`` name (:mod:`tcn_ahrs.estimators.registry`);
 * float64 on CPU by default (``device`` field to run on a GPU).
 """

@@ -1,4 +1,4 @@
-"""The estimator families the search (:mod:`tcn_ahrs.search`) chooses among, each with its
+"""The estimator families the search (:mod:`tcn_ahrs.experiments.search`) chooses among, each with its
 knobs' ranges and defaults, the static calibrations they run on, and the one scoring of a
 candidate (mean AAE and inclination with the yardstick of :mod:`tcn_ahrs.metrics`)."""
 from __future__ import annotations

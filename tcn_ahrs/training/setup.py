@@ -64,14 +64,14 @@ def model_axes(cfg) -> int:
 
 def choose_knobs_into_checkpoint(ckpt_path: str, val_seqs, run_dir: Path,
                                  grid: Optional[Mapping[str, Any]] = None, rule: str = "both") -> Dict[str, float]:
-    """Choose the residual model's inference knobs (:func:`tcn_ahrs.knobs.select_residual_knobs`,
+    """Choose the residual model's inference knobs (:func:`tcn_ahrs.tuning.knobs.select_residual_knobs`,
     over ``grid``, default its own) on ``val_seqs`` and write them into the checkpoint's model
     config (atomically; the checkpoint then IS the selected model); the table goes to
     ``run_dir/knobs.json``."""
     import json
 
     from ..checkpoint import atomic_save, model_from_checkpoint
-    from ..knobs import select_residual_knobs
+    from ..tuning.knobs import select_residual_knobs
 
     model = model_from_checkpoint(ckpt_path)
     chosen, table = select_residual_knobs(model, val_seqs, grid=grid, rule=rule)

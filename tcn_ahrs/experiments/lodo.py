@@ -21,7 +21,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence
 
-from .conf import CONF_DIR
+from ..conf import CONF_DIR
 from .transfer import METRICS, score_cell, write_result
 
 DATASETS = ("broad", "euroc", "tumvi", "oxiod")
@@ -65,7 +65,7 @@ def train_left_out(dataset: str, run_dir: Path, experiment: str, overrides: Sequ
     ckpt = run_dir / "checkpoints" / "last.ckpt"
     if (run_dir / "knobs.json").is_file() and ckpt.is_file():
         return ckpt
-    from .train import train_main
+    from ..training.run import train_main
 
     args = [f"experiment={experiment}", f"data.leave_out={dataset}", f"run_dir={run_dir}",
             "eval.enabled=false", *overrides]
@@ -82,8 +82,8 @@ def reselect(dataset: str, run_dir: Path, experiment: str, overrides: Sequence[s
     current ``train.knob_grid`` and ``train.knob_rule`` (the checkpoint is rewritten atomically)."""
     from omegaconf import OmegaConf
 
-    from .datasets import load_split
-    from .train import choose_knobs_into_checkpoint
+    from ..datasets import load_split
+    from ..training.run import choose_knobs_into_checkpoint
 
     cfg = compose_train([f"experiment={experiment}", f"data.leave_out={dataset}", *overrides])
     grid = OmegaConf.to_container(cfg.train.knob_grid, resolve=True) if cfg.train.get("knob_grid") else None
@@ -99,7 +99,7 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
     (general6_res: 6, general9_res: 9, datasets without a magnetometer skipped). ``device_check``:
     every method runs on the recordings with their gyro bias at rest subtracted, as ``tcn-ahrs
     evaluate`` does for the general models (:mod:`tcn_ahrs.device_check`, no ground truth)."""
-    from .datasets import load_split
+    from ..datasets import load_split
 
     axes = int(compose_train([f"experiment={experiment}", *overrides]).data.axes)
 
@@ -119,7 +119,7 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
         cfg = {**dict(cfg), "fold": None, "axes": axes}
         seqs = [s for s in load_split(cfg, "trainval") if s.quat is not None and s.scored().any()]
         if device_check:
-            from .device_check import check
+            from ..device_check import check
 
             seqs = [check(s).calibration().apply(s) for s in seqs]
         cell = score_cell(str(ckpt), "general", seqs, axes, baselines)

@@ -20,11 +20,11 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
-from .checkpoint import checkpoint_meta, load_checkpoint
-from .config import conf_path
-from .estimators import registry
-from .estimators.families import is_estimator_file, load_estimator, read_estimator
-from .evaluate.runner import evaluate, jsonable
+from ..checkpoint import checkpoint_meta, load_checkpoint
+from ..config import conf_path
+from ..estimators import registry
+from ..estimators.families import is_estimator_file, load_estimator, read_estimator
+from ..evaluate.runner import evaluate, jsonable
 
 DATASETS = ("broad", "euroc", "tumvi", "oxiod", "simulated")
 BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick")
@@ -116,7 +116,7 @@ def score_cell(ckpt: str, label: str, seqs, axes: int, baselines: Sequence[str])
 def transfer(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], baselines: Sequence[str] = BASELINES,
              out: Optional[Path] = None, verbose: bool = True) -> Dict[str, Any]:
     """The matrix over ``ckpts`` {label: path} x ``data_cfgs`` {name: data config}."""
-    from .datasets import load_split
+    from ..datasets import load_split
 
     table: Dict[str, Dict[str, Any]] = {}
     for label, path in ckpts.items():
@@ -209,7 +209,7 @@ def resampled(seq, rate_hz: float):
     between neighbours, a few ms apart), valid where both neighbours are."""
     import numpy as np
 
-    from .sequence import ImuSequence
+    from ..sequence import ImuSequence
 
     t = seq.time
     grid = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * rate_hz)) + 1) / rate_hz
@@ -244,7 +244,7 @@ def rate_sweep(ckpt: str, seqs, axes: int, rates, baselines=("backbone", "vqf", 
 def sweep_main(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], rates: Sequence[float], out: Path):
     """``transfer.rates=[...]``: every checkpoint on the recordings of its matrix cells,
     resampled to each rate, beside the backbone, VQF and Mahony at the same rate."""
-    from .datasets import load_split
+    from ..datasets import load_split
 
     out.mkdir(parents=True, exist_ok=True)
     res: Dict[str, Any] = {}

@@ -23,7 +23,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
-from .evaluate.runner import evaluate
+from ..evaluate.runner import evaluate
 from .transfer import METRICS, write_result
 
 BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick")
@@ -46,7 +46,7 @@ def finetune_run(dataset: str, mode: str, init: Path, recordings: Sequence[str],
     if record.is_file():
         return Path(json.loads(record.read_text())["shipped"])
     from .lodo import compose_train
-    from .train import train_main
+    from ..training.run import train_main
 
     recs = "[" + ",".join(f"'{r}'" for r in recordings) + "]"
     args = ["experiment=finetune", f"init={init}", f"data={dataset}", "data.axes=6", f"data.train={recs}",
@@ -63,9 +63,9 @@ def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: i
              modes: Sequence[str] = MODES, overrides: Sequence[str] = (),
              baselines: Sequence[str] = BASELINES, out: Optional[Path] = None,
              device_check: bool = True) -> Dict[str, Any]:
-    from .datasets import load_split
-    from .estimators import registry
-    from .estimators.learned import LearnedEstimator
+    from ..datasets import load_split
+    from ..estimators import registry
+    from ..estimators.learned import LearnedEstimator
 
     rows: Dict[str, Any] = {}
     for name, cfg in data_cfgs.items():
@@ -77,7 +77,7 @@ def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: i
         cfg = {**dict(cfg), "fold": None, "axes": 6}
         seqs = [s for s in load_split(cfg, "trainval") if s.name not in mine and s.quat is not None and s.scored().any()]
         if device_check:  # as evaluate gives the general model and the fine-tuned ones (train.device_check)
-            from .device_check import check
+            from ..device_check import check
 
             seqs = [check(s).calibration().apply(s) for s in seqs]
         ests = [LearnedEstimator(str(init), name="general")]

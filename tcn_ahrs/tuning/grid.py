@@ -23,10 +23,10 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .estimators.base import initial_quat
-from .estimators.registry import grid_combinations  # noqa: F401  (re-exported: tuning.grid_combinations)
-from .estimators.classical import ClassicalEstimator
-from .sequence import ImuSequence
+from ..estimators.base import initial_quat
+from ..estimators.registry import grid_combinations  # noqa: F401  (re-exported: tuning.grid_combinations)
+from ..estimators.classical import ClassicalEstimator
+from ..sequence import ImuSequence
 
 MetricFn = Callable[[np.ndarray, np.ndarray, np.ndarray], float]
 
@@ -37,7 +37,7 @@ def _metric_fn(metric: Union[str, MetricFn]) -> Callable:
     north unaligned); a callable ``(q_gt, q_est, mask)`` gets the recording's scored samples."""
     if callable(metric):
         return lambda seq, quat, axes: metric(seq.quat, quat, seq.scored())
-    from . import metrics
+    from .. import metrics
 
     if f"{metric}_deg" not in metrics.metric_keys():
         raise ValueError(f"unknown metric {metric!r}: expected a metric of tcn_ahrs.metrics without its _deg "
@@ -155,7 +155,7 @@ def tune_method(method: str, axes: int, sequences: Sequence[ImuSequence],
     one run per point and recording. Same return as :func:`tune_grid`."""
     import warnings
 
-    from .estimators import registry
+    from ..estimators import registry
 
     m = registry.get(method)
     points = [dict(p) for p in (grid if grid is not None else m.grid)]
@@ -195,7 +195,7 @@ def tune_gradient(
     and ground truth on scored samples (the first ``window`` samples of each recording if given,
     to keep the backward pass short). Returns the tuned parameters and the loss history.
     """
-    from . import so3
+    from .. import so3
 
     est = estimator_cls.with_params(**fixed) if isinstance(estimator_cls, ClassicalEstimator) else estimator_cls(**fixed)
     start = {k: float(getattr(est, k)) for k in params}

@@ -2,7 +2,7 @@
 before training (:func:`tune_backbone`, on the training recordings; :func:`backbone_bias`, the
 start of its bias state) and the residual model's inference knobs after it
 (:func:`select_residual_knobs`, on the inner validation fold). The grid search they run is
-:mod:`tcn_ahrs.tuning`'s (all recordings x all points in one batched filter call).
+:mod:`tcn_ahrs.tuning.grid`'s (all recordings x all points in one batched filter call).
 """
 from __future__ import annotations
 
@@ -11,10 +11,10 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 import torch
 
-from .estimators.registry import grid_combinations
-from .kernels.backbone_layout import BackboneParams
-from .sequence import ImuSequence
-from .tuning import score_points, tune_grid
+from ..estimators.registry import grid_combinations
+from ..kernels.backbone_layout import BackboneParams
+from ..sequence import ImuSequence
+from .grid import score_points, tune_grid
 
 
 # the backbone's knobs that differ most between IMUs and motions (VQF's defaults first): the
@@ -51,7 +51,7 @@ def tune_backbone(sequences: Sequence[ImuSequence], axes: int,
     the lowest mean over datasets (recordings named ``<part>/<name>``) of the worse of the AAE and
     inclination ratios to VQF's defaults (the grid's first point), so no dataset's inclination is
     traded for another's heading."""
-    from .estimators.backbone import Backbone
+    from ..estimators.backbone import Backbone
 
     g = dict(grid or BACKBONE_GRID)
     if axes == 6:
@@ -90,7 +90,7 @@ def _tune_never_worse(est, seqs: Sequence[ImuSequence], grid: Mapping[str, Seque
 def backbone_bias(sequences: Sequence[ImuSequence], axes: int, params: Mapping[str, float]) -> np.ndarray:
     """(3,) rad/s: the median over recordings of the backbone's final gyro-bias estimate (with
     ``params``), the starting point of a learned model's bias state on the same device."""
-    from .filters import backbone as bb
+    from ..filters import backbone as bb
 
     p = bb.BackboneParams.from_mapping(dict(params))
     ends = [bb.run(s.gyro, s.accel, s.mag if (axes == 9 and s.has_mag) else None, s.dt, p)["gyro_bias"][-1]
@@ -183,10 +183,10 @@ def select_residual_knobs(model, sequences: Sequence[ImuSequence], grid: Optiona
     inclination is the backbone's and ties). The networks run once per recording; each point
     re-runs only the backbone (numba).
     Sets the chosen knobs on ``model``; returns them and the table (best first)."""
-    from .estimators.base import initial_state
-    from .estimators.learned import model_input
-    from .filters.common import heading_ref_for
-    from .metrics import sequence_metrics
+    from ..estimators.base import initial_state
+    from ..estimators.learned import model_input
+    from ..filters.common import heading_ref_for
+    from ..metrics import sequence_metrics
 
     if model.backbone is None:
         raise ValueError("select_residual_knobs: the model has no backbone (model.loop must be 'backbone')")

@@ -5,7 +5,7 @@ For each outer fold ``i`` of ``data.folds`` (the recordings scored, which choose
 
 1. the other training recordings give the inner splits (``search.inner``: with ≥ 3 folds every
    other fold, whole, validates in turn — one validation fold alone is too few recordings to
-   choose on; else the later parts of the recordings, :func:`tcn_ahrs.crossval.inner_split`);
+   choose on; else the later parts of the recordings, :func:`tcn_ahrs.experiments.crossval.inner_split`);
 2. every candidate is fitted on each inner training set only: a classical family
    (:data:`FAMILIES`: strapdown integration, ECF, Mahony, Madgwick, the VQF-grade backbone with
    VQF's full parameter set), with its defaults or with its knobs searched by Optuna (TPE, seeded,
@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
-from ..estimators.families import CALIBRATIONS, FAMILIES, SIMPLICITY, Calibrated, Family, mean_scores  # noqa: F401
+from ...estimators.families import CALIBRATIONS, FAMILIES, SIMPLICITY, Calibrated, Family, mean_scores  # noqa: F401
 from .choice import best_classical, choose, choose_candidate, fold_choice, release_choice, simplicity_rank  # noqa: F401
 from .fold import (_fit_candidate, _inner_splits, _learned_candidates, auto_folds, candidate_names,  # noqa: F401
                    search_fold, tune_family)
@@ -48,10 +48,10 @@ def search_main(cfg) -> Dict[str, Any]:
     """``tcn-ahrs search``: the nested family search over ``data.folds`` (module docstring)."""
     from omegaconf import OmegaConf
 
-    from ..config import SearchSection, check_keys
+    from ...config import SearchSection, check_keys
     from ..crossval import _fold_cfg
-    from ..datasets import load_split
-    from ..training.setup import model_axes
+    from ...datasets import load_split
+    from ...training.setup import model_axes
 
     sc = cfg.search
     check_keys(sc, SearchSection, "search")
@@ -142,7 +142,7 @@ def search_main(cfg) -> Dict[str, Any]:
 def skipped(sc: Dict[str, Any], n_folds: int) -> List[str]:
     """What a lighter search leaves out against the full one (:class:`~tcn_ahrs.config.SearchSection`'s
     defaults), in words: printed at the start and written in the report."""
-    from ..config import SearchSection
+    from ...config import SearchSection
 
     full = SearchSection()
     out = []
@@ -169,7 +169,7 @@ def _save_fold_choice(out: Path, fold: int, records: Sequence[Dict[str, Any]], d
     """The fold's choice (:func:`fold_choice`), when classical, as ``fold<i>_seed<s>.json`` per seed
     (what ``tcn-ahrs evaluate ckpt=`` reads): refitted on the outer training recordings from the
     seed's finished study (no trial runs again), so the file is the column the report scored."""
-    from ..estimators.families import save_estimator
+    from ...estimators.families import save_estimator
 
     name = fold_choice(records, tie_margin, incl_margin)
     c = records[0]["candidates"][name]
@@ -192,8 +192,8 @@ def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequenc
     """The estimator to ship (:func:`release_choice`); a classical one is fitted on every training
     recording, whole, and written as ``estimator.json`` (``tcn-ahrs evaluate ckpt=.../estimator.json``);
     a learned one is its recipe trained on every recording (the command is printed)."""
-    from ..datasets import load_split
-    from ..estimators.families import save_estimator
+    from ...datasets import load_split
+    from ...estimators.families import save_estimator
 
     name, counts = release_choice(result, float(cfg.search.tie_margin))
     rec = result["folds"][0]["candidates"][name]

@@ -31,7 +31,7 @@ sample (BROAD: the rest phase before the movement is mostly not scored; the lead
 filters settle), at most ``recordings`` of them (evenly spaced over the sorted list so
 each group stays represented). The loss is the mean AAE over the clips
 (:func:`tcn_ahrs.metrics.aae`, filters started at ground truth); the search is the one tuner,
-:func:`tcn_ahrs.tuning.tune_method`, over the method's registered grid (project filters: ALL
+:func:`tcn_ahrs.tuning.grid.tune_method`, over the method's registered grid (project filters: ALL
 clips x ALL grid points in one batched filter call per chunk; peers: one run per point and
 clip). The chosen parameters, scores and clip list go to ``results["tuning"]``.
 
@@ -51,13 +51,13 @@ from typing import Dict, Mapping, Optional, Sequence, Tuple
 
 import torch
 
-from .config import BenchmarkConfig, CompareConfig, conf_path, keys, plain
+from ..config import BenchmarkConfig, CompareConfig, conf_path, keys, plain
 from .columns import VARIANTS, MethodSpec, build_estimators, default_methods, method_specs  # noqa: F401  (re-exported)
-from .estimators import registry
-from .evaluate.reports import average_rows, compare_markdown
-from .evaluate.runner import jsonable
-from .sequence import ImuSequence
-from .validate import set_threads
+from ..estimators import registry
+from ..evaluate.reports import average_rows, compare_markdown
+from ..evaluate.runner import jsonable
+from ..sequence import ImuSequence
+from ..validate import set_threads
 
 # ===========================================================================
 # tuning
@@ -68,15 +68,15 @@ def tune_methods(specs: Sequence[MethodSpec], tune_seqs: Sequence[ImuSequence], 
                  lead_seconds: float = 10.0, max_recordings: Optional[int] = None, max_batch: int = 128,
                  device: str = "cpu", verbose: bool = True) -> dict:
     """Fill in ``params`` of every ``variant == "tuned"`` spec (in place) from a grid search
-    (:func:`tcn_ahrs.tuning.tune_method`, the registry's grid) on clips of ``tune_seqs``
+    (:func:`tcn_ahrs.tuning.grid.tune_method`, the registry's grid) on clips of ``tune_seqs``
     (training recordings only!). One search per (method, axes).
 
     Returns the tuning record ``{"recordings": [clip records], "max_seconds_per_recording",
     "lead_seconds", "methods": {column: {"params", "score_aae_deg", "default_params",
     "grid_size", "time_s", "top": [best 3 rows]}}}``.
     """
-    from .estimators.peers import PeerUnavailable
-    from .tuning import tune_method, tuning_clips
+    from ..estimators.peers import PeerUnavailable
+    from ..tuning.grid import tune_method, tuning_clips
 
     todo = [s for s in specs if s.variant == "tuned"]
     clips, rec = tuning_clips(tune_seqs, max_seconds, lead_seconds, max_recordings)
@@ -159,7 +159,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
         the results dict of :func:`tcn_ahrs.evaluate.evaluate` plus ``tuning``, ``columns``
         (column -> {method, axes, variant, params, ckpt}), ``ablation`` (labels), ``timing``.
     """
-    from .evaluate.runner import evaluate
+    from ..evaluate.runner import evaluate
 
     t_start = time.perf_counter()
     eval_seqs = [s for s in eval_seqs]
@@ -198,7 +198,7 @@ def compare(eval_seqs: Sequence[ImuSequence], tune_seqs: Sequence[ImuSequence] =
 
     estimators, specs = build_estimators(specs, device, reanchor)
     for label, path in dict(on_calibrated or {}).items():
-        from .estimators.learned import OnLearnedCalibration
+        from ..estimators.learned import OnLearnedCalibration
 
         for s_, e in list(zip(specs, estimators)):
             if s_.kind in ("classical", "peer"):
@@ -276,7 +276,7 @@ _C = CompareConfig()  # the defaults of keys a hand-built config may lack
 
 
 def _default_out(cfg, kind: str) -> Path:
-    from .app import output_dir
+    from ..app import output_dir
 
     return output_dir(cfg.get("out"), Path("runs") / kind / str(cfg.data.name))
 
@@ -305,7 +305,7 @@ def _tune_data_cfg(cfg):
 def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
     """``scripts/compare.py`` (and ``scripts/benchmark.py accuracy``): load ``data.split`` for
     evaluation and ``tune_split`` (train) for tuning, run :func:`compare`, print the averages."""
-    from .datasets import load_split
+    from ..datasets import load_split
 
     unknown = set(k for k in cfg.keys() if k not in ("data", "hydra")) - set(allowed_keys)
     if unknown:

@@ -9,7 +9,7 @@ from typing import Any, Dict, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..estimators.families import SIMPLICITY
+from ...estimators.families import SIMPLICITY
 
 
 def simplicity_rank(name: str) -> int:

@@ -21,18 +21,18 @@ import pytorch_lightning as pl
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from .checkpoint import check_layout, checkpoint_meta, load_checkpoint
-from .config import EvalSection, TrainConfig, TrainScriptConfig, check_keys, check_types, plain
-from .config.train import TRAIN_GROUPS
-from .data import AHRSDataModule
-from .model.ahrs import LearnedAHRS
-from .training.module import AHRSModule
-from .training.setup import (AUGMENT_KEYS, MONITORS, TRAIN_KEYS, TRAIN_VALUES, check_train_values,  # noqa: F401
+from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
+from ..config import EvalSection, TrainConfig, TrainScriptConfig, check_keys, check_types, plain
+from ..config.train import TRAIN_GROUPS
+from ..data import AHRSDataModule
+from ..model.ahrs import LearnedAHRS
+from .module import AHRSModule
+from .setup import (AUGMENT_KEYS, MONITORS, TRAIN_KEYS, TRAIN_VALUES, check_train_values,  # noqa: F401
                              choose_knobs_into_checkpoint, model_axes, rest_gyro_mean)
-from .training.trainer import (RESUME_KEYS, AppendingCSVLogger, RandomState, build_trainer, check_groups,  # noqa: F401
+from .trainer import (RESUME_KEYS, AppendingCSVLogger, RandomState, build_trainer, check_groups,  # noqa: F401
                                command_line_overrides, find_resume_checkpoint, resume_config, run_dir_of,
                                trim_metrics)
-from .validate import set_threads
+from ..validate import set_threads
 
 __all__ = ["train_main", "check_config", "AHRSModule", "choose_knobs_into_checkpoint", "rest_gyro_mean",
            "check_train_values", "model_axes", "build_trainer", "RandomState", "find_resume_checkpoint",
@@ -91,7 +91,7 @@ def _set_up(cfg: DictConfig, overrides: Optional[List[str]]):
     if cfg.get("resume") and not cfg.get("ckpt_path"):
         cfg = resume_config(cfg, run_dir_of(cfg), overrides if overrides is not None else command_line_overrides())
     check_config(cfg)
-    from .estimators.registry import check_method_names
+    from ..estimators.registry import check_method_names
 
     check_method_names((cfg.get("eval") or {}).get("baselines"))  # a typo fails now, not after training
     set_threads(cfg.get("threads"))
@@ -108,7 +108,7 @@ def _model_config(cfg: DictConfig, axes: int):
     if not cfg.get("init"):
         return model_cfg, None
     # fine-tuning: the architecture, knobs and weights are the checkpoint's; the model group is not used
-    from .checkpoint import model_from_checkpoint
+    from ..checkpoint import model_from_checkpoint
 
     shipped = Path(__file__).resolve().parents[1] / str(cfg.init)
     if not Path(str(cfg.init)).is_file() and shipped.is_file():  # checkpoints/... from anywhere
@@ -132,7 +132,7 @@ def _data(cfg: DictConfig, axes: int, probe: LearnedAHRS, init_model, train_seqs
     if cfg.train.get("all_recordings") and train_seqs is None:
         # the released model: every training recording, whole, with the fixed schedule; nothing
         # held out, so nothing is selected (the last epoch ships)
-        from .datasets import load_split
+        from ..datasets import load_split
 
         train_seqs, val_seqs = load_split(cfg.data, "trainval"), []
     supervision = str(cfg.train.get("supervision") or _T.supervision)
@@ -155,8 +155,8 @@ def _tune(cfg: DictConfig, axes: int, probe: LearnedAHRS, dm, model_cfg: Dict[st
     on the held-out ones), stored in the model config so that the checkpoint keeps them."""
     if probe.backbone is None or not cfg.train.get("tune_backbone", _T.tune_backbone) or supervision != "gt":
         return model_cfg
-    from .kernels.backbone_layout import BackboneParams
-    from .knobs import tune_backbone
+    from ..kernels.backbone_layout import BackboneParams
+    from ..tuning.knobs import tune_backbone
 
     criterion = str(cfg.train.get("tune_criterion") or _T.tune_criterion)
     chosen, table = tune_backbone(dm.train_seqs, axes,
@@ -208,7 +208,7 @@ def _build_module(cfg: DictConfig, axes: int, dm, model_cfg: Dict[str, Any], ini
             print(f"gyro error term starts at the training recordings' mean gyro at rest: "
                   f"{[round(float(v), 5) for v in bias]} rad/s")
     if module.model.backbone is not None and at_rest:
-        from .knobs import backbone_bias
+        from ..tuning.knobs import backbone_bias
 
         b0 = backbone_bias(dm.train_seqs, axes, (model_cfg.get("residual") or {}).get("backbone") or {})
         module.model.backbone.bias_init.copy_(torch.as_tensor(b0))
@@ -320,9 +320,9 @@ def _keep_if_not_better(cfg: DictConfig, run_dir: Path, axes: int, dm, tuned: st
     else the starting model (``checkpoints/kept.ckpt``). The evidence goes to ``adaptation.json``."""
     if not _gated(cfg):
         return tuned
-    from .checkpoint import atomic_save
-    from .estimators.learned import LearnedEstimator
-    from .training.adaptation import decide, evidence
+    from ..checkpoint import atomic_save
+    from ..estimators.learned import LearnedEstimator
+    from .adaptation import decide, evidence
 
     seqs = _evidence_parts(cfg, dm)
     before = evidence(LearnedEstimator(str(cfg.init), name="before"), seqs, supervision, axes)
@@ -348,13 +348,13 @@ def _evaluate(cfg: DictConfig, run_dir: Path, axes: int, best: str, test_seqs) -
     ev = cfg.get("eval") or {}
     if not ev.get("enabled", _E.enabled):
         return None
-    from .evaluate import evaluate, print_table
-    from .evaluate.reports import print_summary
-    from .estimators.learned import LearnedEstimator
-    from .estimators.registry import baseline_estimators
+    from ..evaluate import evaluate, print_table
+    from ..evaluate.reports import print_summary
+    from ..estimators.learned import LearnedEstimator
+    from ..estimators.registry import baseline_estimators
 
     if test_seqs is None:
-        from .datasets import load_split
+        from ..datasets import load_split
         test_seqs = load_split(cfg.data, str(ev.get("split", _E.split)))
     test_seqs = [s for s in test_seqs if s.has_gt]
     if not test_seqs:

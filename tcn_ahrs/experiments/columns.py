@@ -3,7 +3,7 @@ table column is, and building its estimator from the one registry.
 
 A column is a :class:`MethodSpec` before it is built: ``vqf9d`` (a registered method on 9 axes
 with its default parameters), ``vqf9d (tuned)`` (parameters filled in by
-:func:`tcn_ahrs.compare.tune_methods`), ``Raw IMU``, or a checkpoint label.
+:func:`tcn_ahrs.experiments.compare.tune_methods`), ``Raw IMU``, or a checkpoint label.
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple
 
-from .estimators import registry
+from ..estimators import registry
 
 
 VARIANTS = ("default", "tuned")
@@ -105,7 +105,7 @@ def build_estimators(specs: Sequence[MethodSpec], device: str = "cpu",
                      reanchor: Optional[int] = None) -> Tuple[list, List[MethodSpec]]:
     """Estimators of ``specs``; peers whose library is missing are skipped with ONE warning
     naming them. Returns ``(estimators, specs_kept)``."""
-    from .estimators.peers import INSTALL_HINT, PeerUnavailable
+    from ..estimators.peers import INSTALL_HINT, PeerUnavailable
 
     out, kept, missing = [], [], []
     for s in specs:

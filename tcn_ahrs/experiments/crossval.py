@@ -4,7 +4,7 @@ Nested: for each (outer) fold ``i`` of ``data.folds``, train on the other traini
 with an inner validation set (:func:`inner_split`: the next fold, whole, or the later parts of
 the recordings) that chooses the epoch — or, for the residual model, its inference knobs — then
 score that checkpoint next to the baselines on fold ``i``'s recordings, which chose nothing, with the one comparison runner
-(:func:`tcn_ahrs.compare.compare`; baselines tuned, if asked, on the fold's training recordings
+(:func:`tcn_ahrs.experiments.compare.compare`; baselines tuned, if asked, on the fold's training recordings
 only). Writes ``crossval.json`` and ``crossval.md`` (per fold and mean ± sample standard
 deviation over folds) under the output folder, one sub-folder per fold.
 """
@@ -18,9 +18,9 @@ from typing import Any, Dict, List, Tuple
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from .config import CrossvalSection, check_keys
-from .evaluate.reports import label as metric_label
-from .metrics import metric_keys
+from ..config import CrossvalSection, check_keys
+from ..evaluate.reports import label as metric_label
+from ..metrics import metric_keys
 
 
 def _fold_cfg(cfg: DictConfig, i: int, run_dir: Path) -> DictConfig:
@@ -43,7 +43,7 @@ def inner_split(cfg: DictConfig, folds: List[list], i: int, fcfg: DictConfig) ->
     spare whole ones). Whole recordings where possible: the later parts of a training recording
     share its device state with the first parts (TUM VI, split: the bias prior estimated on a
     room's first 80 s looks right on its last minute and is wrong in another room)."""
-    from .datasets import load_split, split_recording
+    from ..datasets import load_split, split_recording
 
     mode = str(cfg.crossval.get("inner") or "auto")
     if mode not in ("auto", "fold", "split"):
@@ -65,10 +65,10 @@ def inner_split(cfg: DictConfig, folds: List[list], i: int, fcfg: DictConfig) ->
 
 def release_knobs(fold_knobs: List[List[dict]]) -> Dict[str, Any]:
     """The residual knobs for a released model: each point's criterion (worse ratio to the tuned
-    backbone, :func:`tcn_ahrs.knobs.select_residual_knobs`) averaged over the folds' inner
+    backbone, :func:`tcn_ahrs.tuning.knobs.select_residual_knobs`) averaged over the folds' inner
     validation tables; the lowest wins if it beats the tuned backbone (the tables' reference point,
-    criterion 1) by the selection's margin (:data:`tcn_ahrs.knobs.RESIDUAL_KNOB_MARGIN`)."""
-    from .knobs import RESIDUAL_KNOB_MARGIN
+    criterion 1) by the selection's margin (:data:`tcn_ahrs.tuning.knobs.RESIDUAL_KNOB_MARGIN`)."""
+    from ..tuning.knobs import RESIDUAL_KNOB_MARGIN
 
     scores: Dict[tuple, List[float]] = {}
     reference = None
@@ -136,10 +136,10 @@ def untrained_main(cfg: DictConfig) -> Dict[str, Any]:
     mapping of ``model.closed_loop`` overrides) on every fold's training and held-out
     recordings. Choose the loop's prior on the training-recording column: those recordings are
     what a fold's training sees. Writes ``untrained.json`` / ``untrained.md``."""
-    from .datasets import load_split
-    from .estimators.learned import LearnedEstimator
-    from .evaluate import evaluate
-    from .model.ahrs import LearnedAHRS
+    from ..datasets import load_split
+    from ..estimators.learned import LearnedEstimator
+    from ..evaluate import evaluate
+    from ..model.ahrs import LearnedAHRS
 
     cv = cfg.crossval
     _, idx = _folds(cfg)
@@ -178,9 +178,9 @@ def untrained_main(cfg: DictConfig) -> Dict[str, Any]:
 
 def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
     from .compare import compare
-    from .estimators import registry
-    from .datasets import load_split
-    from .train import model_axes, train_main
+    from ..estimators import registry
+    from ..datasets import load_split
+    from ..training.run import model_axes, train_main
 
     cv = cfg.crossval
     check_keys(cv, CrossvalSection, "crossval")  # conf/crossval.yaml's section: tcn_ahrs/config/train.py
@@ -213,7 +213,7 @@ def crossval_main(cfg: DictConfig) -> Dict[str, Any]:
             if cv.get("reselect") and (run_dir / "knobs.json").is_file():
                 # the residual model's inference knobs chosen again (e.g. after a change of the
                 # grid or criterion) on the same inner validation set, without training again
-                from .train import choose_knobs_into_checkpoint
+                from ..training.run import choose_knobs_into_checkpoint
 
                 _, val_seqs, inner = inner_split(cfg, folds, i, fcfg)
                 print(f"   re-choosing the inference knobs on the {inner}")

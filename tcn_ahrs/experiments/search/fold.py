@@ -9,9 +9,9 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .. import calibration as cal_mod
-from ..estimators.families import CALIBRATIONS, FAMILIES, Calibrated, Family, mean_scores
-from ..sequence import ImuSequence
+from ... import calibration as cal_mod
+from ...estimators.families import CALIBRATIONS, FAMILIES, Calibrated, Family, mean_scores
+from ...sequence import ImuSequence
 from .choice import choose_candidate
 from .records import _sqlite_storage
 
@@ -50,7 +50,7 @@ def _learned_candidates(spec: Dict[str, str], fold: int, which: str = "last") ->
     compares it with the classical candidates; "selected": the checkpoint crossval chose on that
     very inner fold (its epoch or knobs), which makes the comparison there optimistic for it
     (EuRoC closed loop, outer fold 0: inner 1.77 selected vs 3.15 last, outer 1.96 vs 3.34)."""
-    from ..estimators.learned import LearnedEstimator
+    from ...estimators.learned import LearnedEstimator
 
     if which not in ("last", "selected"):
         raise ValueError(f"search.learned_checkpoint: expected last or selected, got {which!r}")
@@ -70,7 +70,7 @@ def _fit_candidate(family: str, calib: str, tuned: bool, train: Sequence[ImuSequ
                    seed: int, storage: Optional[str], study: str,
                    tune_seconds: Optional[float] = None) -> Tuple[Any, Dict[str, float]]:
     """One classical candidate fitted on ``train``: its static calibration (whole recordings) and
-    (``tuned``) its knobs, on clips of ``tune_seconds`` (:func:`tcn_ahrs.tuning.tuning_clips`,
+    (``tuned``) its knobs, on clips of ``tune_seconds`` (:func:`tcn_ahrs.tuning.grid.tuning_clips`,
     from 10 s before the first scored sample; None: whole recordings). Returns (estimator, knobs)."""
     fam = FAMILIES[family]
     cal = None if CALIBRATIONS[calib] is None else cal_mod.fit_calibration(train, strict=False, **CALIBRATIONS[calib])
@@ -78,7 +78,7 @@ def _fit_candidate(family: str, calib: str, tuned: bool, train: Sequence[ImuSequ
     if tuned and fam.defaults:
         seqs = train
         if tune_seconds:
-            from ..tuning import tuning_clips
+            from ...tuning.grid import tuning_clips
             seqs = tuning_clips(train, float(tune_seconds), 10.0, None)[0]
         knobs, _ = tune_family(fam, seqs, axes, trials, seed, storage, study, cal)
     return Calibrated(fam.build(axes, **knobs), cal), knobs
@@ -113,7 +113,7 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
     candidate is fitted again on ``others`` (every recording but the outer fold's) and scored on
     ``test`` beside every other candidate fitted the same way (the fold's choice over all seeds,
     :func:`fold_choice`, reads these columns). Returns the fold's record for this seed."""
-    from ..evaluate import evaluate
+    from ...evaluate import evaluate
 
     t0 = time.perf_counter()
     cands: Dict[str, Dict[str, Any]] = {}
@@ -155,9 +155,9 @@ def _inner_splits(mode: str, folds: List[list], i: int, fcfg, inner_cfg) -> Tupl
     """The inner (training, validation) pairs of outer fold ``i`` and which of them crossval's
     learned candidates were validated on. ``folds`` (the default with ≥ 3 folds): every other fold,
     whole, validates in turn; ``fold`` / ``split``: crossval's one inner split
-    (:func:`tcn_ahrs.crossval.inner_split`)."""
+    (:func:`tcn_ahrs.experiments.crossval.inner_split`)."""
     from ..crossval import inner_split
-    from ..datasets import load_split
+    from ...datasets import load_split
 
     if mode not in ("auto", "folds", "fold", "split"):
         raise ValueError(f"search.inner: expected auto, folds, fold or split, got {mode!r}")
@@ -185,7 +185,7 @@ def auto_folds(cfg, k: int = 3) -> List[List[str]]:
     ``cfg.data`` (folds, train) and printed. Needs at least ``k`` recordings."""
     from omegaconf import open_dict
 
-    from ..datasets import loader, resolve_root
+    from ...datasets import loader, resolve_root
 
     if cfg.data.name == "simulated":
         raise ValueError("search: the simulator has splits, not folds; use data=generic (your recordings), "
