@@ -387,3 +387,19 @@ def test_grid_integrate(shape, dtype):
         for k in range(1, n):
             ref = ref * Rotation.from_rotvec(omega[b, k] * dt[b, k])
             np.testing.assert_allclose(out[b, k], ref.as_matrix(), **tol(dtype, "integrate"))
+
+
+def test_the_tensor_and_the_scalar_hamilton_product_are_one_expression():
+    """so3.quat_mul (tensors: batched, autograd) and kernels.quat.qmul (scalars: numba, TorchScript)
+    are two readings of one product: equal bit for bit, so neither can drift from the other."""
+    from tcn_ahrs.kernels.quat import qmul, quat_step
+
+    g = torch.Generator().manual_seed(3)
+    p, q = torch.randn(64, 4, dtype=torch.float64, generator=g), torch.randn(64, 4, dtype=torch.float64, generator=g)
+    scalar = torch.tensor([qmul(*a.tolist(), *b.tolist()) for a, b in zip(p, q)], dtype=torch.float64)
+    assert torch.equal(so3.quat_mul(p, q), scalar)
+    # the scalar step q ⊗ exp(φ) agrees with the tensor exp (the same series below 1e-6 rad²)
+    qn = so3.quat_normalize(p)
+    phi = 0.3 * torch.randn(64, 3, dtype=torch.float64, generator=g)
+    step = torch.tensor([quat_step(*a.tolist(), *f.tolist()) for a, f in zip(qn, phi)], dtype=torch.float64)
+    assert torch.allclose(step, so3.quat_normalize(so3.quat_mul(qn, so3.quat_exp(phi))), atol=1e-14)

@@ -46,7 +46,8 @@ def matrix_to_quat(m00: float, m01: float, m02: float, m10: float, m11: float, m
 
 def qmul(pw: float, px: float, py: float, pz: float, qw: float, qx: float, qy: float, qz: float
          ) -> Tuple[float, float, float, float]:
-    """The Hamilton product p ⊗ q."""
+    """The Hamilton product p ⊗ q: the scalar reading of :func:`tcn_ahrs.so3.quat_mul` (the same
+    expression; tests/test_so3.py holds them equal bit for bit)."""
     return (pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
             pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw)
 
