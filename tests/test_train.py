@@ -21,7 +21,9 @@ from tcn_ahrs.conf import CONF_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 CONF = CONF_DIR
-TINY = ["data=generic", "train.epochs=2", "train.window=400", "train.stride=200", "train.batch_size=4",
+# the learned closed loop (model=ahrs): what these pipeline tests were written against (start at the
+# given attitude, best.ckpt by validation); the default (model=residual) is tested in test_residual.py
+TINY = ["data=generic", "model=ahrs", "train.epochs=2", "train.window=400", "train.stride=200", "train.batch_size=4",
         "model.tcn.channels=[4,4,4,8]", "trainer.enable_progress_bar=false", "eval.plots=false",
         "eval.trajectories=false", "eval.baselines=[]", "threads=1"]
 
