@@ -55,6 +55,10 @@ class ResidualConfig:
     trust_max: float = 2.0         # upper clip of 2 sigma(z)
     trust_weight: float = 0.5      # trust = 1 + w (2 sigma(z) - 1)
     bias_prior: float = 1.0        # multiplies the bias state's start: 0 = zero start
+    # the learned accelerometer trust gates the bias update in motion: bias trust = bias_trust_scale
+    # × (2 σ(z_acc) / trust_max)^p — where the network doubts the specific force is gravity alone,
+    # the tilt error is the hand's acceleration, not the gyro's bias; 0: ungated (VQF's)
+    bias_trust_power: float = 0.0
     backbone: Dict[str, float] = field(default_factory=dict)  # BackboneParams fields; {}: VQF's defaults
 
 

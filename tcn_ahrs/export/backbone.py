@@ -82,6 +82,7 @@ class ResidualStreaming(StreamingAHRS):
         self.gyro_scale, self.gyro_clip = float(cal.gyro_scale), float(cal.gyro_clip)
         self.trust_max, self.trust_weight_knob = float(loop.trust_max), float(loop.trust_weight)
         self.trust_scales = [float(loop.acc_trust_scale), float(loop.mag_trust_scale), float(loop.bias_trust_scale)]
+        self.bias_trust_power = float(loop.bias_trust_power)
         self.params = [float(v) for v in loop.params.vector()]
         self.bias0 = [float(v) for v in (loop.bias_prior * loop.bias_init.detach().double()).tolist()]
         self.q_start = [1.0, 0.0, 0.0, 0.0]
@@ -130,6 +131,8 @@ class ResidualStreaming(StreamingAHRS):
         for j in range(self.n_trust):
             tr = min(self.trust_max, 2.0 / (1.0 + math.exp(v[3 + j])))  # 2 σ(z) with z = −v
             trusts[j] = self.trust_scales[j] * (1.0 + self.trust_weight_knob * (tr - 1.0))
+            if j == 0 and self.bias_trust_power > 0.0:  # the acc trust gating the bias update
+                trusts[2] = self.trust_scales[2] * (tr / self.trust_max) ** self.bias_trust_power
         lim = self.gyro_clip
         gx = raw[0] - min(lim, max(-lim, self.gyro_scale * math.tanh(-v[0])))
         gy = raw[1] - min(lim, max(-lim, self.gyro_scale * math.tanh(-v[1])))

@@ -101,6 +101,7 @@ class ResidualStep(nn.Module):
         self.gyro_scale, self.gyro_clip = float(rs.gyro_scale), float(rs.gyro_clip)
         self.trust_max, self.trust_weight = float(rs.trust_max), float(rs.trust_weight_knob)
         self.trust_scales = [float(v) for v in rs.trust_scales]
+        self.bias_trust_power = float(rs.bias_trust_power)
         self.params = [float(v) for v in rs.params]
         self.register_buffer("initial_backbone", torch.tensor(rs.initial_state, dtype=F64))
         self.register_buffer("bias0", torch.tensor(rs.bias0, dtype=F64))
@@ -163,6 +164,8 @@ class ResidualStep(nn.Module):
         for j in range(self.n_trust):
             tr = torch.clamp(2.0 / (1.0 + torch.exp(v[3 + j])), max=self.trust_max)
             trusts[j] = self.trust_scales[j] * (1.0 + self.trust_weight * (tr - 1.0))
+            if j == 0 and self.bias_trust_power > 0.0:  # the acc trust gating the bias update
+                trusts[2] = self.trust_scales[2] * torch.pow(tr / self.trust_max, self.bias_trust_power)
         lim = self.gyro_clip
         g = x[0:3] - torch.clamp(self.gyro_scale * torch.tanh(-v[0:3]), -lim, lim)
         # the backbone's start at the first sample after reset (ResidualStreaming._start)

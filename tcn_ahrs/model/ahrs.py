@@ -87,6 +87,7 @@ class LearnedAHRS(nn.Module):
                                          trust_max=float(res["trust_max"]),
                                          trust_weight=float(res["trust_weight"]),
                                          bias_prior=float(res["bias_prior"]),
+                                         bias_trust_power=float(res["bias_trust_power"]),
                                          backbone=dict(res["backbone"] or {}))
             return
         self.calibration = Calibration(self.axes, gyro_net, acc_net, mag_net, gyro_input,

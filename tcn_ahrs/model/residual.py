@@ -99,7 +99,8 @@ class BackboneLoop(nn.Module):
     def __init__(self, use_mag: bool, acc_trust_scale: float = _R.acc_trust_scale,
                  mag_trust_scale: float = _R.mag_trust_scale, bias_trust_scale: float = _R.bias_trust_scale,
                  trust_max: float = _R.trust_max, trust_weight: float = _R.trust_weight,
-                 backbone: Optional[Mapping[str, float]] = None, bias_prior: float = _R.bias_prior):
+                 backbone: Optional[Mapping[str, float]] = None, bias_prior: float = _R.bias_prior,
+                 bias_trust_power: float = _R.bias_trust_power):
         super().__init__()
         self.trust_max = float(trust_max)
         self.trust_weight = float(trust_weight)
@@ -108,6 +109,7 @@ class BackboneLoop(nn.Module):
         self.mag_trust_scale = float(mag_trust_scale)
         self.bias_trust_scale = float(bias_trust_scale)
         self.bias_prior = float(bias_prior)  # multiplies bias_init: 0 = VQF's zero start
+        self.bias_trust_power = float(bias_trust_power)  # the acc trust gating the bias update (config)
         self.params = bb.BackboneParams.from_mapping(dict(backbone or {}))
         # the bias estimate's starting point (rad/s): the training recordings' estimated gyro bias
         # (train.init_gyro_bias), a prior the backbone keeps estimating from (zero: VQF's start)
@@ -121,7 +123,11 @@ class BackboneLoop(nn.Module):
 
         acc = trust(cal["acc_trust_logit"], self.acc_trust_scale)
         mag = trust(cal["mag_trust_logit"], self.mag_trust_scale) if "mag_trust_logit" in cal else torch.ones_like(acc)
-        return {"acc_trust": acc, "mag_trust": mag, "bias_trust": torch.full_like(acc, self.bias_trust_scale)}
+        bias = torch.full_like(acc, self.bias_trust_scale)
+        if self.bias_trust_power > 0.0:  # the network's own accelerometer trust, before the knobs
+            raw = torch.clamp(2.0 * torch.sigmoid(cal["acc_trust_logit"].double()), max=self.trust_max)
+            bias = self.bias_trust_scale * (raw / self.trust_max) ** self.bias_trust_power
+        return {"acc_trust": acc, "mag_trust": mag, "bias_trust": bias}
 
     @torch.no_grad()
     def run(self, cal: Dict[str, Tensor], imu: Tensor, dt: Tensor, q0: np.ndarray, start: int,

@@ -27,7 +27,7 @@ if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportErro
         pre-tanh (3), trust logits]) -> gyro residual and trusts (as
         :class:`~tcn_ahrs.model.residual.BackboneLoop`) -> one backbone step (the kernel of
         :mod:`tcn_ahrs.kernels.backbone`). knobs: [gyro_scale, gyro_clip, trust_max, trust_weight,
-        acc, mag, bias trust scale, last dt, use_mag]; m_conj (4,): the magnetic frame's
+        acc, mag, bias trust scale, last dt, use_mag, networks' time index, bias trust power]; m_conj (4,): the magnetic frame's
         conjugate (9D; identity for 6D), applied to the output. out (k, 7): quat, omega."""
         h_in, h_out, tap, pre, v = scratch(ints)
         no_feats = np.empty(0)
@@ -47,6 +47,9 @@ if AVAILABLE:  # the compiled parts (without numba the runtimes raise ImportErro
                 else:
                     trusts[j] = knobs[4 + j]
             trusts[2] = knobs[6]
+            if knobs[10] > 0.0 and ints[7] > 3:  # the acc trust gating the bias update
+                tr = min(t_max, 2.0 / (1.0 + math.exp(v[3])))
+                trusts[2] = knobs[6] * (tr / t_max) ** knobs[10]
             gx = x[0] - min(g_clip, max(-g_clip, g_scale * math.tanh(-v[0])))
             gy = x[1] - min(g_clip, max(-g_clip, g_scale * math.tanh(-v[1])))
             gz = x[2] - min(g_clip, max(-g_clip, g_scale * math.tanh(-v[2])))
@@ -115,7 +118,7 @@ class BackboneStreaming:
         self._bias0 = loop.bias_prior * loop.bias_init.detach().double().numpy().copy()
         self._knobs = np.asarray([cal.gyro_scale, cal.gyro_clip, loop.trust_max, loop.trust_weight,
                                   loop.acc_trust_scale, loop.mag_trust_scale, loop.bias_trust_scale,
-                                  -1.0, float(self._use_mag), 0.0], dtype=np.float64)
+                                  -1.0, float(self._use_mag), 0.0, loop.bias_trust_power], dtype=np.float64)
         self._coeff = np.zeros(bb.K.N_COEFF)
         self._m_conj = np.array([1.0, 0.0, 0.0, 0.0])
         self._out1 = np.empty((1, 7))

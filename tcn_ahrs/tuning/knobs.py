@@ -108,7 +108,9 @@ def backbone_bias(sequences: Sequence[ImuSequence], axes: int, params: Mapping[s
 # ``bias_prior`` 0 drops the training device's bias estimate as the start of the bias state (a
 # calibrated IMU in another room: TUM VI room 5 0.84 deg with it, raw integration 0.69).
 RESIDUAL_KNOB_GRID = {"correct": [1.0, 0.0], "trust_weight": [0.0, 0.5, 1.0], "gyro_clip": [0.0, 0.005, 0.02],
-                      "bias_prior": [1.0, 0.0]}
+                      "bias_prior": [1.0, 0.0],
+                      # the learned acc trust gating the bias update in motion (ResidualConfig.bias_trust_power)
+                      "bias_trust_power": [0.0, 1.0, 4.0]}
 
 
 # A point must beat the tuned backbone by more than this (relative) on the inner validation set:
@@ -130,6 +132,8 @@ def residual_knob_points(grid: Optional[Mapping[str, Sequence]] = None) -> List[
              "trust_weight": float(p.get("trust_weight", 0.0)) if c > 0 else 0.0,
              "acc_trust_scale": c, "mag_trust_scale": c, "bias_trust_scale": c,
              "bias_prior": float(p.get("bias_prior", 1.0))}
+        if "bias_trust_power" in p:
+            q["bias_trust_power"] = float(p["bias_trust_power"]) if c > 0 else 0.0
         key = tuple(sorted(q.items()))
         if key not in seen:
             seen.add(key)
@@ -143,11 +147,12 @@ def set_residual_knobs(model, knobs: Mapping[str, float]) -> None:
     for k, v in knobs.items():
         if k == "gyro_clip":
             model.calibration.gyro_clip = float(v)
-        elif k in ("trust_weight", "acc_trust_scale", "mag_trust_scale", "bias_trust_scale", "bias_prior"):
+        elif k in ("trust_weight", "acc_trust_scale", "mag_trust_scale", "bias_trust_scale", "bias_prior",
+                   "bias_trust_power"):
             setattr(model.backbone, k, float(v))
         else:
             raise ValueError(f"model.residual.{k}: not an inference knob (expected gyro_clip, trust_weight, "
-                             "acc_trust_scale, mag_trust_scale, bias_trust_scale, bias_prior)")
+                             "acc_trust_scale, mag_trust_scale, bias_trust_scale, bias_prior, bias_trust_power)")
 
 
 @torch.no_grad()

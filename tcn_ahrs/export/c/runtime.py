@@ -156,7 +156,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
         "GYRO_SCALE": repr(float(cal.gyro_scale)), "GYRO_CLIP": repr(float(cal.gyro_clip)),
         "TRUST_MAX": repr(float(loop.trust_max)), "TRUST_W": repr(float(loop.trust_weight)),
         "ACC_SCALE": repr(float(loop.acc_trust_scale)), "MAG_SCALE": repr(float(loop.mag_trust_scale)),
-        "BIAS_SCALE": repr(float(loop.bias_trust_scale)),
+        "BIAS_SCALE": repr(float(loop.bias_trust_scale)), "BIAS_POWER": repr(float(loop.bias_trust_power)),
         "S_GQ": str(K.S_GQ), "S_BIAS": str(K.S_BIAS), "S_REST": str(K.S_REST), "S_MAGDIST": str(K.S_MAGDIST),
         "S_GFROZEN": str(K.S_GFROZEN), "S_AFROZEN": str(K.S_AFROZEN), "S_GCLIPPED": str(K.S_GCLIPPED),
         "S_ACLIPPED": str(K.S_ACLIPPED), "S_GAP": str(K.S_GAP),
