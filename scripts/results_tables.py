@@ -41,6 +41,11 @@ Blocks (:data:`BLOCKS`):
     Fine-tuning on two recordings of a device the general model never saw, ``tcn-ahrs benchmark
     finetune`` → ``runs/benchmark/finetune/finetune.json``, copied to ``docs/results/json/finetune.json``,
     rendered by :func:`tcn_ahrs.experiments.finetune.markdown`.
+``rates`` (docs/results.md)
+    The general models on BROAD's test trials resampled to 50-1000 Hz, ``tcn-ahrs benchmark transfer
+    'transfer.ckpts={general6: checkpoints/general6.ckpt, general9: checkpoints/general9.ckpt}'
+    'transfer.datasets=[broad]' 'transfer.rates=[50,100,200,500,1000]'`` → ``rates.json``, copied to
+    ``docs/results/json/rates.json``, rendered by :func:`tcn_ahrs.experiments.transfer.rates_markdown`.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -242,6 +247,7 @@ BLOCKS: Dict[str, Block] = {
     **{f"lodo{a}": Block(f"docs/results/json/lodo{a}.json", lambda result: _lodo.markdown(result), ("docs/results.md",))
        for a in (6, 9)},
     "finetune": Block("docs/results/json/finetune.json", lambda result: _finetune.markdown(result), ("docs/results.md",)),
+    "rates": Block("docs/results/json/rates.json", lambda result: _transfer.rates_markdown(result), ("docs/results.md",)),
 }
 
 

@@ -241,6 +241,21 @@ def rate_sweep(ckpt: str, seqs, axes: int, rates, baselines=("backbone", "vqf", 
     return {"rates": [float(r) for r in rates], "rows": rows, "recordings": [s.name for s in seqs]}
 
 
+def rates_markdown(res: Mapping[str, Any]) -> str:
+    """The rate sweep's table (``rates.json`` of :func:`sweep_main`)."""
+    lines = ["| checkpoint on data (split) | rate Hz | learned | backbone | VQF | Mahony |", "|---|---|---|---|---|---|"]
+    for key, sw in res.items():
+        label, name = key.split("/", 1)
+        for r, row in sw["rows"].items():
+            a = row["all"]
+            cells = [row["learned"]] + [next((v for k, v in a.items() if k.startswith(m)), None)
+                                         for m in ("backbone", "vqf", "mahony")]
+            lines.append(f"| {label} on {name} ({sw['split']}, {len(sw['recordings'])} rec.) | {float(r):g} | " + " | ".join(
+                "–" if c is None else f"{c['aae_deg']:.2f} / {c['inclination_deg']:.2f}" for c in cells) + " |")
+    return "\n".join(lines) + ("\n\nMean AAE / inclination, degrees; each recording resampled to the rate (readings "
+                               "linear, ground truth along the geodesic).\n")
+
+
 def sweep_main(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], rates: Sequence[float], out: Path):
     """``transfer.rates=[...]``: every checkpoint on the recordings of its matrix cells,
     resampled to each rate, beside the backbone, VQF and Mahony at the same rate."""
@@ -248,7 +263,6 @@ def sweep_main(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], rates
 
     out.mkdir(parents=True, exist_ok=True)
     res: Dict[str, Any] = {}
-    lines = ["| checkpoint on data (split) | rate Hz | learned | backbone | VQF | Mahony |", "|---|---|---|---|---|---|"]
     for label, path in ckpts.items():
         meta = checkpoint_meta(load_checkpoint(path), path)
         axes, owns = int(meta["layout"]["axes"]), own_datasets(str(meta.get("data", "")))
@@ -260,15 +274,9 @@ def sweep_main(ckpts: Mapping[str, str], data_cfgs: Mapping[str, Mapping], rates
             seqs = [s.without_mag() if (axes == 6 and s.has_mag) else s for s in seqs]
             sw = rate_sweep(path, seqs, axes, rates)
             res[f"{label}/{name}"] = {**sw, "split": split}
-            for r, row in sw["rows"].items():
-                a = row["all"]
-                cells = [row["learned"]] + [next((v for k, v in a.items() if k.startswith(m)), None)
-                                             for m in ("backbone", "vqf", "mahony")]
-                lines.append(f"| {label} on {name} ({split}, {len(seqs)} rec.) | {float(r):g} | " + " | ".join(
-                    "–" if c is None else f"{c['aae_deg']:.2f} / {c['inclination_deg']:.2f}" for c in cells) + " |")
-                print(lines[-1], flush=True)
+            print(rates_markdown({f"{label}/{name}": res[f"{label}/{name}"]}), flush=True)
     (out / "rates.json").write_text(json.dumps(jsonable(res), indent=1))
-    md = "\n".join(lines) + "\n\nMean AAE / inclination, degrees; each recording resampled to the rate (readings linear, ground truth along the geodesic).\n"
+    md = rates_markdown(jsonable(res))
     (out / "rates.md").write_text(md)
     print(md)
     return res
