@@ -104,3 +104,34 @@ def test_evaluate_with_the_general_model_checks_the_device_first(tmp_path):
     # measured: general6 1.46 -> 1.07 (its 8 °/s bias clip already held the bias), VQF 18.3 -> 1.07
     assert aae["auto"]["Learned AHRS"] < 0.8 * aae["false"]["Learned AHRS"], aae
     assert aae["auto"]["vqf6d"] < 0.2 * aae["false"]["vqf6d"], aae
+
+
+@pytest.mark.parametrize("flagged", [True, False])
+def test_evaluate_checks_the_device_for_a_model_trained_on_checked_recordings(tmp_path, flagged):
+    """``device_check: auto`` with ``ckpt=``: a checkpoint trained with ``train.device_check`` (its
+    layout says so; a fine-tuning's shipped model) is given checked recordings, one trained on raw
+    readings is not."""
+    import subprocess
+    import sys
+
+    import torch
+
+    from tcn_ahrs.checkpoint import load_checkpoint
+
+    repo = Path(__file__).resolve().parents[1]
+    ck = load_checkpoint(repo / "checkpoints" / "general6.ckpt")
+    layout = {k: v for k, v in ck["tcn_ahrs"]["layout"].items() if k != "device_check"}
+    ck["tcn_ahrs"] = {**ck["tcn_ahrs"], "layout": {**layout, **({"device_check": True} if flagged else {})}}
+    torch.save(ck, tmp_path / "model.ckpt")
+    seq = simulate("walking", 30.0, 100.0, seed=3, device_seed=4, gyro_bias_range_dps=(4.9, 5.0))
+    (tmp_path / "data").mkdir()
+    np.savetxt(tmp_path / "data" / "biased.csv",
+               np.column_stack([seq.time, seq.gyro, seq.accel, seq.quat]), delimiter=",", comments="",
+               fmt="%.10g", header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,quat_w,quat_x,quat_y,quat_z")
+    out = tmp_path / "eval"
+    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"ckpt={tmp_path / 'model.ckpt'}", "data=generic",
+                        f"data.root={tmp_path / 'data'}", "data.axes=6", "data.split=all", f"out={out}",
+                        f"hydra.run.dir={out}", "plots=false", "trajectories=false", "baselines=[]"],
+                       cwd=repo, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert ("device check, biased: rests" in r.stdout) == flagged
