@@ -15,7 +15,7 @@ import argparse
 import numpy as np
 
 from tcn_ahrs.datasets import load_split
-from tcn_ahrs.device_check import check
+from tcn_ahrs.device_check import checked
 from tcn_ahrs.estimators.base import initial_state
 from tcn_ahrs.estimators.learned import LearnedEstimator
 from tcn_ahrs.experiments.lodo import DATASETS, compose_train
@@ -32,7 +32,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     for d in args.datasets:
         cfg = {**plain(compose_train([f"data={d}"]).data), "fold": None, "axes": 6}
-        seqs = [check(s).calibration().apply(s) for s in load_split(cfg, "trainval") if s.has_gt]
+        seqs = checked([s for s in load_split(cfg, "trainval") if s.has_gt])
         est = LearnedEstimator(f"{args.runs}/{d}/checkpoints/last.ckpt", name="general")
         scores = {p: [] for p in args.powers}
         picked = []

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Any, Dict, List, Mapping, Optional, Sequence
+from typing import Dict, List, Mapping, Optional, Sequence
 
 import numpy as np
 import pytorch_lightning as pl
@@ -303,22 +303,16 @@ class AHRSDataModule(pl.LightningDataModule):
         if self.device_check:
             # each recording (part) with its own gyro bias at rest subtracted, as evaluate does for
             # the general models: the model learns on what it will be given
-            from .device_check import check
+            # (one check per recording, read from the part that rests: device_check.checked)
+            from .device_check import checked
 
-            # one check per recording, read from whichever of its parts rests longest (a later
-            # part in flight never rests: EuRoC's 4.4 °/s bias would stay in it)
-            best: Dict[str, Any] = {}
-            for s in list(self.train_seqs) + list(self.val_seqs):
-                dc, rec = check(s), s.meta.get("recording", s.name)
-                rest_s = dc.rest_fraction * s.duration
-                if rec not in best or rest_s > best[rec][0]:
-                    best[rec] = (rest_s, dc)
-            for group in ("train_seqs", "val_seqs"):
-                setattr(self, group, [best[s.meta.get("recording", s.name)][1].calibration().apply(s)
-                                      for s in getattr(self, group)])
-            rested = sum(1 for r, _ in best.values() if r > 0)
-            print(f"device check: the gyro bias at rest subtracted from {rested} of {len(best)} recordings "
-                  f"({len(self.train_seqs)} training, {len(self.val_seqs)} validation parts)")
+            found: Dict[str, bool] = {}
+            n_train = len(self.train_seqs)
+            both = checked(list(self.train_seqs) + list(self.val_seqs),
+                           lambda rec, dc: found.__setitem__(rec, dc.gyro_bias is not None))
+            self.train_seqs, self.val_seqs = both[:n_train], both[n_train:]
+            print(f"device check: the gyro bias at rest subtracted from {sum(found.values())} of {len(found)} "
+                  f"recordings ({len(self.train_seqs)} training, {len(self.val_seqs)} validation parts)")
         keep = [s for s in self.train_seqs if s.has_gt and s.quat_valid.any()]
         if self.supervision == "self":
             keep = list(self.train_seqs)  # no ground truth needed

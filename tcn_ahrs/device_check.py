@@ -23,7 +23,7 @@ family reads. Frames and units: the body frame; rad/s, m/s², µT.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -87,21 +87,19 @@ def rest_windows(gyro: np.ndarray, acc: np.ndarray, rate: float, cfg: DeviceChec
     up = up / np.maximum(np.linalg.norm(up, axis=1, keepdims=True), 1e-12)
     rest = np.zeros(m, bool)
     need = max(1, int(np.ceil(cfg.min_rest_s / cfg.window_s)))
-    i = 0
-    while i < m:
-        if not quiet[i]:
-            i += 1
-            continue
-        j = i
-        while j < m and quiet[j]:
-            j += 1
+    for i, j in stretches(quiet):
         if j - i >= need:
             mean = up[i:j].mean(0)
             mean = mean / np.linalg.norm(mean)
             tilt = np.degrees(np.arccos(np.clip(up[i:j] @ mean, -1.0, 1.0))).max()
             rest[i:j] = tilt <= cfg.max_tilt_deg
-        i = j
     return rest, n, g_floor, a_floor
+
+
+def stretches(mask: np.ndarray) -> List[Tuple[int, int]]:
+    """[(start, stop)) of each run of consecutive True in the (W,) bool ``mask``."""
+    edges = np.diff(np.concatenate([[0], np.asarray(mask, dtype=np.int8), [0]]))
+    return list(zip(np.nonzero(edges == 1)[0].tolist(), np.nonzero(edges == -1)[0].tolist()))
 
 
 def check(seq: ImuSequence, cfg: DeviceCheckConfig = DeviceCheckConfig()) -> DeviceCheck:
@@ -137,3 +135,20 @@ def check(seq: ImuSequence, cfg: DeviceCheckConfig = DeviceCheckConfig()) -> Dev
     return DeviceCheck(gyro_bias=bias, gyro_noise=g_floor, acc_noise=a_floor, rest_fraction=frac, axes=axes,
                        reasons=reasons)
 
+
+def checked(seqs: Sequence[ImuSequence], report: Optional[Callable[[str, DeviceCheck], None]] = None,
+            cfg: DeviceCheckConfig = DeviceCheckConfig()) -> List[ImuSequence]:
+    """``seqs`` with their gyro bias at rest subtracted, one check per recording (``meta["recording"]``,
+    else the name): read from whichever of its parts rests longest and applied to all of them (a
+    later part in flight never rests: EuRoC's 4.4 °/s bias would stay in it). ``report(recording,
+    check)``: called once per recording (``evaluate`` prints it)."""
+    best: Dict[str, Tuple[float, DeviceCheck]] = {}
+    for s in seqs:
+        dc, rec = check(s, cfg), s.meta.get("recording", s.name)
+        rest_s = dc.rest_fraction * s.duration
+        if rec not in best or rest_s > best[rec][0]:
+            best[rec] = (rest_s, dc)
+    if report is not None:
+        for rec, (_, dc) in best.items():
+            report(rec, dc)
+    return [best[s.meta.get("recording", s.name)][1].calibration().apply(s) for s in seqs]

@@ -42,6 +42,8 @@ def test_parts_load_as_one_dataset_named_by_part_and_leave_one_out():
     assert [s.name.split("/")[0] for s in seqs] == ["slow", "slow", "fast", "fast"]
     assert all(not s.has_mag for s in seqs)  # the top-level axes apply to every part
     assert sorted({round(s.rate) for s in seqs}) == [100, 250]
+    # a recording's identity (one device check each) carries its part: parts may share names
+    assert [s.meta["recording"] for s in seqs] == [s.name for s in seqs]
     left = load_split({**cfg, "leave_out": "slow"}, "train")
     assert [s.name.split("/")[0] for s in left] == ["fast", "fast"]
     assert list(data_parts({**cfg, "leave_out": ["fast"]})) == ["slow"]

@@ -247,6 +247,8 @@ def _load_parts(data_cfg: Mapping, split: str) -> List[ImuSequence]:
                 continue
         for s in load_split(cfg, split):
             s = copy.copy(s)  # checked once, at its loader
+            # its own meta: the recording (one device check per recording) named with its part too
+            s.meta = {**s.meta, "recording": f"{part}/{s.meta.get('recording', s.name)}"}
             s.name = f"{part}/{s.name}"
             seqs.append(s)
     return seqs

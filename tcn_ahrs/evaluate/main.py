@@ -62,14 +62,15 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         axes = min(axes, int(learned.axes or axes))
         return _run(cfg, learned, *_recordings(cfg, general_model), axes, out)
     ck = load_checkpoint(cfg.ckpt)
-    if axes == 9 and int(checkpoint_meta(ck, cfg.ckpt)["layout"]["axes"]) == 6:
+    layout = checkpoint_meta(ck, cfg.ckpt)["layout"]
+    if axes == 9 and int(layout["axes"]) == 6:
         # a 6-axis model needs only the gyro and the accelerometer: score the 6-axis view
         print(f"note: {cfg.ckpt} is a 6-axis model: the magnetometer is not used and every method "
               "is scored as 6-axis (heading relative to the start)")
         axes = 6
     check_layout(ck, axes, cfg.ckpt, data_axes=dataset_axes(str(cfg.data.name)))
     # auto: the general models, and a model that learned on checked recordings (train.device_check)
-    checked_input = general_model or bool(checkpoint_meta(ck, cfg.ckpt)["layout"].get("device_check"))
+    checked_input = general_model or bool(layout.get("device_check"))
     seqs, refused = _recordings(cfg, checked_input)
     learned = LearnedEstimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name),
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
@@ -90,14 +91,9 @@ def _recordings(cfg: DictConfig, general_model: bool = False):
     if mode not in ("auto", "true", "false"):
         raise ValueError(f"device_check: expected auto, true or false, got {mode!r}")
     if mode == "true" or (mode == "auto" and general_model):
-        from ..device_check import check
+        from ..device_check import checked
 
-        checked = []
-        for s in seqs:
-            dc = check(s)
-            print(f"device check, {s.name}: {dc.summary()}")
-            checked.append(dc.calibration().apply(s))
-        seqs = checked
+        seqs = checked(seqs, lambda rec, dc: print(f"device check, {rec}: {dc.summary()}"))
     return seqs, refused
 
 

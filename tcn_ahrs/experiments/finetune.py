@@ -38,13 +38,13 @@ def own_recordings(data_cfg: Mapping, k: int) -> List[str]:
 
 
 def finetune_run(dataset: str, mode: str, init: Path, recordings: Sequence[str], run_dir: Path,
-                 overrides: Sequence[str] = ()) -> Path:
+                 overrides: Sequence[str] = ()) -> Dict[str, Any]:
     """Fine-tune ``init`` on ``recordings`` of ``dataset`` (6 axes, device-checked, their later parts
-    held out); returns the checkpoint the run shipped (``adaptation.json``: the fine-tuned one, or
-    the starting model when the held-out parts did not say it is better)."""
+    held out); returns the run's ``adaptation.json``: ``shipped`` (the fine-tuned checkpoint, or the
+    starting model when the held-out parts did not say it is better), ``adopted``, the evidence."""
     record = run_dir / "adaptation.json"
     if record.is_file():
-        return Path(json.loads(record.read_text())["shipped"])
+        return json.loads(record.read_text())
     from .lodo import compose_train
     from ..training.run import train_main
 
@@ -56,7 +56,8 @@ def finetune_run(dataset: str, mode: str, init: Path, recordings: Sequence[str],
         args.append("resume=true")
     cfg = compose_train(args)
     print(f"finetune: {' '.join(args)}", flush=True)
-    return Path(train_main(cfg, overrides=list(args))["best"])
+    train_main(cfg, overrides=list(args))
+    return json.loads(record.read_text())
 
 
 def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: int = 2,
@@ -77,17 +78,17 @@ def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: i
         cfg = {**dict(cfg), "fold": None, "axes": 6}
         seqs = [s for s in load_split(cfg, "trainval") if s.name not in mine and s.quat is not None and s.scored().any()]
         if device_check:  # as evaluate gives the general model and the fine-tuned ones (train.device_check)
-            from ..device_check import check
+            from ..device_check import checked
 
-            seqs = [check(s).calibration().apply(s) for s in seqs]
+            seqs = checked(seqs)
         ests = [LearnedEstimator(str(init), name="general")]
         ckpts = {"general": str(init)}
         adopted: Dict[str, bool] = {}
         for mode in modes:
-            ck = finetune_run(name, mode, init, mine, Path(runs) / f"{name}_{mode}", overrides)
-            ests.append(LearnedEstimator(str(ck), name=f"finetuned_{mode}"))
-            ckpts[f"finetuned_{mode}"] = str(ck)
-            adopted[mode] = json.loads((Path(runs) / f"{name}_{mode}" / "adaptation.json").read_text())["adopted"]
+            run = finetune_run(name, mode, init, mine, Path(runs) / f"{name}_{mode}", overrides)
+            ests.append(LearnedEstimator(run["shipped"], name=f"finetuned_{mode}"))
+            ckpts[f"finetuned_{mode}"] = run["shipped"]
+            adopted[mode] = bool(run["adopted"])
         for b in baselines:
             try:
                 ests.append(registry.build(b, 6))

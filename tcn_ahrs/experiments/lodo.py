@@ -119,9 +119,9 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
         cfg = {**dict(cfg), "fold": None, "axes": axes}
         seqs = [s for s in load_split(cfg, "trainval") if s.quat is not None and s.scored().any()]
         if device_check:
-            from ..device_check import check
+            from ..device_check import checked
 
-            seqs = [check(s).calibration().apply(s) for s in seqs]
+            seqs = checked(seqs)
         cell = score_cell(str(ckpt), "general", seqs, axes, baselines)
         cell["own"] = own_model(Path(nested) / f"{name}{axes}" / "crossval.json")
         cell["riann"] = cell["all"].get("riann6d")

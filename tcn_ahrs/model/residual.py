@@ -117,16 +117,19 @@ class BackboneLoop(nn.Module):
 
     def trusts(self, cal: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """(B, N) trusts from the calibration's logits (2σ(z): 1 at z = 0) times the scales."""
-        def trust(z: Tensor, scale: float) -> Tensor:
-            t = torch.clamp(2.0 * torch.sigmoid(z.double()), max=self.trust_max)
+        def network(z: Tensor) -> Tensor:  # the network's own trust, 2 σ(z) clipped
+            return torch.clamp(2.0 * torch.sigmoid(z.double()), max=self.trust_max)
+
+        def trust(t: Tensor, scale: float) -> Tensor:
             return scale * (1.0 + self.trust_weight * (t - 1.0))  # how far the network moves it from 1
 
-        acc = trust(cal["acc_trust_logit"], self.acc_trust_scale)
-        mag = trust(cal["mag_trust_logit"], self.mag_trust_scale) if "mag_trust_logit" in cal else torch.ones_like(acc)
+        t_acc = network(cal["acc_trust_logit"])
+        acc = trust(t_acc, self.acc_trust_scale)
+        mag = (trust(network(cal["mag_trust_logit"]), self.mag_trust_scale) if "mag_trust_logit" in cal
+               else torch.ones_like(acc))
         bias = torch.full_like(acc, self.bias_trust_scale)
-        if self.bias_trust_power > 0.0:  # the network's own accelerometer trust, before the knobs
-            raw = torch.clamp(2.0 * torch.sigmoid(cal["acc_trust_logit"].double()), max=self.trust_max)
-            bias = self.bias_trust_scale * (raw / self.trust_max) ** self.bias_trust_power
+        if self.bias_trust_power > 0.0:  # the network's accelerometer trust, before the knobs
+            bias = self.bias_trust_scale * (t_acc / self.trust_max) ** self.bias_trust_power
         return {"acc_trust": acc, "mag_trust": mag, "bias_trust": bias}
 
     @torch.no_grad()

@@ -41,26 +41,18 @@ INCLINATION_TOL_DEG = 0.01  # °, how much the inclination may rise (with ground
 def rest_drift_dps(seq: ImuSequence, quat: np.ndarray) -> Optional[tuple]:
     """(mean turn rate of ``quat`` (N, 4) nav_from_body over the recording's rest stretches in °/s,
     seconds of rest) or None when it never rests."""
-    from ..device_check import rest_windows
+    from ..device_check import rest_windows, stretches
 
     rest, n, _, _ = rest_windows(seq.gyro, seq.accel, float(seq.rate))
     if not rest.any():
         return None
     q = torch.as_tensor(quat, dtype=torch.float64)
     turned, seconds = 0.0, 0.0
-    i = 0
-    while i < rest.size:  # each stretch of rest windows: the rotation from its first to its last sample
-        if not rest[i]:
-            i += 1
-            continue
-        j = i
-        while j < rest.size and rest[j]:
-            j += 1
+    for i, j in stretches(rest):  # each stretch of rest windows: the rotation from its first to its last sample
         a, b = i * n, j * n - 1
         rel = so3.quat_mul(so3.quat_conj(q[a]), q[b])
         turned += float(torch.linalg.norm(so3.quat_log(rel)))
         seconds += float(np.sum(seq.dt[a + 1:b + 1]))
-        i = j
     return math.degrees(turned) / max(seconds, 1e-9), seconds
 
 
