@@ -218,21 +218,45 @@ def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(runtimes, nam
 @needs_cc
 @pytest.mark.parametrize("flags", [[], ["-march=native"]])
 def test_vector_loops_equal_the_scalar_loops(built, tmp_path, flags):
-    """The networks' vector loops (GNU C vectors: SSE, AVX with -march=native, NEON) sum each
-    output in the scalar loop's order: the same floats out as -DTCN_AHRS_NO_VECTOR's build."""
+    """The networks' vector sums (GNU C vectors: SSE, NEON; the AVX2 copy chosen at run time;
+    AVX with -march=native) add each output in the scalar loop's order, a multiply then an add
+    per lane: the same floats out as -DTCN_AHRS_NO_DISPATCH's (portable vectors only) and
+    -DTCN_AHRS_NO_VECTOR's (scalar loops) builds."""
     c_vec, _, paths = built["oxiod9"]
     if flags:
         c_vec = CRuntime(compile_c(paths["c"], tmp_path / "libv.so", "double", CC, flags), "oxiod9", 9)
-    c_sca = CRuntime(compile_c(paths["c"], tmp_path / "libs.so", "double", CC, ["-DTCN_AHRS_NO_VECTOR", *flags]),
-                     "oxiod9", 9)
+    others = [CRuntime(compile_c(paths["c"], tmp_path / f"lib{i}.so", "double", CC, [f, *flags]), "oxiod9", 9)
+              for i, f in enumerate(["-DTCN_AHRS_NO_VECTOR", "-DTCN_AHRS_NO_DISPATCH"])]
     imu = _imu(simulate("walking", 20.0, 200.0, seed=3, axes=9), 9)
     outs = []
-    for rt in (c_vec, c_sca):
+    for rt in (c_vec, *others):
         rt.reset(np.array([1.0, 0.0, 0.0, 0.0], np.float32))
         code, out = rt.run(imu, np.float32(0.005))
         assert code == 0
         outs.append(out)
-    assert np.array_equal(outs[0], outs[1])
+    assert np.array_equal(outs[0], outs[1]) and np.array_equal(outs[0], outs[2])
+
+
+@needs_cc
+@pytest.mark.parametrize("name", ["oxiod9", "tumvi6"])
+def test_run_in_blocks_equals_one_step_at_a_time(runtimes, name):
+    """name_run passes the networks over BLOCK samples at a time (each weight read once per
+    block); every output and the state after it are the floats of name_step called per sample,
+    whatever the block boundaries (lengths not a multiple of the block, runs split anywhere)."""
+    from tcn_ahrs.export.c.runtime import BLOCK
+
+    c_rt, _ = runtimes[name, "float"]
+    axes = _axes(name)
+    imu = _imu(simulate("walking", 4.0, 200.0, seed=7, axes=axes), axes)
+    n, q0 = 3 * BLOCK * 20 + 5, np.array([1.0, 0.0, 0.0, 0.0], np.float32)
+    c_rt.reset(q0)
+    steps = np.array([np.concatenate(c_rt.step(x, 0.005)[1:3]) for x in imu[:n]])
+    after_steps = c_rt.snapshot()
+    c_rt.reset(q0)
+    parts = [c_rt.run(imu[a:b], 0.005) for a, b in ((0, 3), (3, BLOCK + 4), (BLOCK + 4, n))]
+    assert all(code == 0 for code, _ in parts)
+    assert np.array_equal(np.concatenate([o for _, o in parts]), steps)
+    assert c_rt.snapshot() == after_steps
 
 
 @needs_cc
@@ -260,7 +284,7 @@ def test_networks_that_are_off_are_not_in_the_runtime(built):
     size = {n: built[n][0].state_size for n in ("broad9", "tumvi6", "euroc6")}
     assert size["broad9"] < 2048
     assert 0.45 < (size["tumvi6"] - size["broad9"]) / (size["euroc6"] - size["broad9"]) < 0.55
-    assert "conv_layer(st" not in Path(built["broad9"][2]["c"]).read_text()
+    assert "conv(st" not in Path(built["broad9"][2]["c"]).read_text()
 
 
 # ------------------------------------------------------------------ bad inputs
@@ -295,11 +319,17 @@ def test_bad_samples_are_refused_before_the_state_changes(built, name):
     c_rt.reset(q0)
     assert c_rt.step(cases[0][0], dt)[0] == 1
     assert np.array_equal(c_rt.run(imu[:10], dt)[1], ref[:10])
-    # run() stops at the first refused sample with its code
+    # run() stops at the first refused sample with its code (here inside a block of the
+    # networks' pass): the samples before it as run alone, the state as after them
     c_rt.reset(q0)
     bad = imu[:20].copy()
-    bad[7, 2] = np.nan
-    assert c_rt.run(bad, dt)[0] == 1
+    bad[11, 2] = np.nan
+    code, out = c_rt.run(bad, dt)
+    assert code == 1 and np.array_equal(out[:11], ref[:11])
+    after_bad = c_rt.snapshot()
+    c_rt.reset(q0)
+    c_rt.run(imu[:11], dt)
+    assert c_rt.snapshot() == after_bad
     assert c_rt.reset([0.0, 0.0, 0.0, 0.0]) == 4
     assert c_rt.reset([np.nan, 0.0, 0.0, 1.0]) == 4
 

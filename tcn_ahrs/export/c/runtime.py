@@ -29,6 +29,8 @@ ROOTS_6 = ("coefficients", "gyro_update", "acc_update", "quat6", "qmul")
 ROOTS_9 = ROOTS_6 + ("mag_update", "quat9")
 # the kernels computed in double in every build (the low-pass filters and their coefficients;
 # helpers.h.in WREAL says why)
+# samples per pass of the networks in name_run (each weight read once per block, not per sample)
+BLOCK = 8
 WIDE_KERNELS = ("butter", "coefficients", "lp_begin", "lp", "lp_end", "lp3", "mag_update")
 
 
@@ -123,7 +125,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     wts, head_w, head_b, ints, n_ring, n_trust = _network_arrays(model)
     kk, nl = ints[1], ints[2]
     layers = [ints[LAYOUT_HEADER + LAYOUT_PER_LAYER * i:LAYOUT_HEADER + LAYOUT_PER_LAYER * (i + 1)] for i in range(nl)]
-    # weights tap-major per group, (groups, K c_in, c_out): conv_layer's layout
+    # weights tap-major per group, (groups, K c_in, c_out): conv's layout
     wt = wts.copy()
     for g, cin, cout, d, span, wo, bo, ro in layers:
         n_tap = kk * cin
@@ -136,9 +138,8 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
     calls = [] if layers else ["    (void)st; (void)out;  /* both networks are off (live_networks): the backbone alone */"]
     for li, (g, cin, cout, d, span, wo, bo, ro) in enumerate(layers):
         calls.append(f"    /* layer {li}: {g} group(s), {cin} -> {cout} channels, dilation {d} */\n"
-                     f"    conv_layer(st->ring + {ro}, st->pos[{li}], h, out, {g}, {cin}, {cout}, {d}, {span}, {wo}, {bo});\n"
-                     f"    st->pos[{li}] = st->pos[{li}] + 1 == {span} ? 0 : st->pos[{li}] + 1;\n"
-                     f"    for (i = 0; i < {g * cout}; i++) h[i] = out[i];")
+                     f"    conv(st->ring + {ro}, &st->pos[{li}], h, out, ns, {g}, {cin}, {cout}, {d}, {span}, {wo}, {bo});\n"
+                     f"    for (n = 0; n < ns; n++) for (i = 0; i < {g * cout}; i++) h[n][i] = out[n][i];")
     up = name.upper()
     p = list(loop.params.vector())
     s0 = K.initial_state(loop.params)
@@ -149,7 +150,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
         "N_PARAM": str(K.N_PARAM), "N_RING": str(max(n_ring, 1)), "N_LAYERS": str(max(nl, 1)), "K": str(kk),
         "NL": str(nl), "N_FEAT": str(n_feat), "N_HEAD": str(n_head), "N_TRUST": str(n_trust), "WIDTH": str(width),
         "N_WTS": str(wts.size), "USE_MAG": "1" if use_mag else "0",
-        "LAYER_CALLS": "\n".join(calls),
+        "LAYER_CALLS": "\n".join(calls), "BLOCK": str(BLOCK),
         "WTS": _f32(wts), "HEAD_W": _f64(head_w), "HEAD_B": _f64(head_b), "PARAMS": _f64(p), "STATE0": _f64(s0),
         "BIAS0": _f64(bias0), "LIMITS": _f64(INPUT_LIMITS[:c]), "MAX_DT": repr(float(MAX_DT)),
         "ERF_P": _f32(ERF_P), "ERF_Q": _f32(ERF_Q), "N_ERF_P": str(len(ERF_P)), "N_ERF_Q": str(len(ERF_Q)),
