@@ -480,3 +480,64 @@ def test_export_command_writes_the_c_files_and_keeps_earlier_ones(tmp_path, caps
     with pytest.raises(SystemExit) as e:
         main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={tmp_path / 'model.pt'}"])
     assert e.value.code == 2 and "must name the C file" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ a tuned classical filter
+def _ecf_file(tmp_path, axes, calibrated):
+    """An ECF file as tcn-ahrs search writes it: tuned knobs and, ``calibrated``, a static
+    calibration with biases, scale and misalignment in every sensor."""
+    from tcn_ahrs.calibration import StaticCalibration
+    from tcn_ahrs.estimators.families import save_estimator
+
+    cal = None
+    if calibrated:
+        rot = np.array([[1.0, -0.02, 0.01], [0.02, 1.0, -0.015], [-0.01, 0.015, 1.0]])
+        cal = StaticCalibration(gyro_matrix=1.03 * rot, gyro_bias=np.array([0.02, -0.01, 0.03]),
+                                acc_matrix=0.98 * rot.T, acc_bias=np.array([0.1, -0.05, 0.2]),
+                                mag_matrix=1.1 * rot, hard_iron=np.array([5.0, -3.0, 8.0]))
+    path = tmp_path / f"ecf{axes}{'_cal' if calibrated else ''}.json"
+    save_estimator(path, "ecf", axes, {"k_norm": 0.3, "a_min": 1.5}, cal)
+    return path
+
+
+@needs_cc
+@pytest.mark.parametrize("axes", [6, 9])
+@pytest.mark.parametrize("calibrated", [False, True])
+def test_tuned_ecf_exports_as_its_c_kernel(tmp_path, axes, calibrated):
+    """A tuned ECF file (the classical family tcn-ahrs search ships for TUM VI and OxIOD) exports
+    to C: Eqs. 5-8 and Eq. 4 translated from kernels/classical.py, its knobs and calibration
+    written in; over a simulated minute both builds equal the estimator tcn-ahrs evaluate runs
+    (float ≤ 1e-4 rad, double ≤ 1e-6 rad: its float32 outputs) and refuse bad samples unchanged."""
+    import dataclasses
+
+    from tcn_ahrs.estimators.families import load_estimator
+
+    path = _ecf_file(tmp_path, axes, calibrated)
+    paths = export_c(path, tmp_path, "ecf")
+    seq = simulate("walking", 60.0, 200.0, seed=3, axes=axes)
+    imu = _imu(seq, axes)
+    as_read = dataclasses.replace(seq, gyro=imu[:, :3].astype(np.float64), accel=imu[:, 3:6].astype(np.float64),
+                                  mag=imu[:, 6:].astype(np.float64) if axes == 9 else None, check_units=False)
+    est = load_estimator(path)
+    est.inner = est.inner.with_params(heading_ref="init")  # the runtime's: the field of its first sample
+    q0 = seq.quat[0].astype(np.float32)
+    ref = est.run(as_read, init_quat=q0.astype(np.float64)).quat
+    for real, bound in (("float", 1e-4), ("double", 1e-6)):
+        rt = CRuntime(compile_c(paths["c"], tmp_path / f"libecf_{real}.so", real, CC), "ecf", axes)
+        rt.reset(q0)
+        code, out = rt.run(imu, np.float32(0.005))
+        assert code == 0
+        assert _angle(out[:, :4].astype(np.float64), np.asarray(ref)).max() < bound, real
+    before = rt.snapshot()
+    bad = imu[10].copy()
+    bad[2] = np.nan
+    assert rt.step(bad, 0.005)[0] == 1 and rt.snapshot() == before
+
+
+def test_classical_families_without_a_c_kernel_are_named(tmp_path):
+    from tcn_ahrs.estimators.families import save_estimator
+
+    save_estimator(tmp_path / "m.json", "mahony", 6, {}, None)
+    with pytest.raises(ExportError, match=r"family 'mahony'; format=c holds the residual models and the classical "
+                                          r"families \['ecf'\]"):
+        export_c(tmp_path / "m.json", tmp_path, "m")

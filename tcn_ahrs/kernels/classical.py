@@ -18,7 +18,29 @@ from .quat import quat_step_nb as quat_step
 from .quat import rodrigues_nb as rodrigues
 
 
-def ecf_step(r00, r01, r02, r10, r11, r12, r20, r21, r22, ax, ay, az, wa, mx, my, mz, wm, use_mag, gx, gy, gz, d):
+def ecf_weights(ax, ay, az, mx, my, mz, use_mag, t, k_norm, k_init, t_init, a_min, m_min, m_max, gravity):
+    """Eqs. 5-8 of :func:`tcn_ahrs.filters.ecf.ecf` for one sample's readings (the torch filter
+    computes them vectorised over the recording: ``normalize``, ``field_gates``,
+    ``gain_schedule``): the unit specific force a^, the measured east (m x a)/|m x a| (Eq. 6 in
+    ENU) and the two terms' weights, the gain K(t) of Eq. 8 where the Eq. 7 tests pass, else 0
+    (``t``: seconds since sample 0). The C runtime's reading (export/c/classical.py)."""
+    an = math.sqrt(ax * ax + ay * ay + az * az)
+    na = max(an, 1e-30)  # a zero reading stays zero (1e-300 would be 0 in a float build)
+    tt = max(t_init, 1e-12)
+    gain = k_norm + (tt - t) / tt * (k_init - k_norm) if t < t_init else k_norm
+    acc_ok = an - gravity < a_min and gravity - an < a_min
+    wa = gain if acc_ok else 0.0
+    ex, ey, ez, wm = 0.0, 0.0, 0.0, 0.0
+    if use_mag:
+        mn = math.sqrt(mx * mx + my * my + mz * mz)
+        cx, cy, cz = my * az - mz * ay, mz * ax - mx * az, mx * ay - my * ax
+        nc = max(math.sqrt(cx * cx + cy * cy + cz * cz), 1e-30)
+        ex, ey, ez = cx / nc, cy / nc, cz / nc
+        wm = gain if acc_ok and mn > m_min and mn < m_max else 0.0
+    return ax / na, ay / na, az / na, ex, ey, ez, wa, wm
+
+
+def ecf_step(r00, r01, r02, r10, r11, r12, r20, r21, r22, ax, ay, az, wa, mx, my, mz, wm, use_mag, gx, gy, gz, dt):
     """Eqs. 4-6 of :func:`tcn_ahrs.filters.ecf.ecf`: the attitude r (nav_from_body, row by row)
     after one sample: ``r <- r exp([(omega + e) dt] x)``, e = wa a^ x C^T up + wm east^ x C^T east
     (the magnetometer term only with ``use_mag``)."""
@@ -29,7 +51,7 @@ def ecf_step(r00, r01, r02, r10, r11, r12, r20, r21, r22, ax, ay, az, wa, mx, my
         ex += wm * (my * r02 - mz * r01)                # east^ x C^T east (first row)
         ey += wm * (mz * r00 - mx * r02)
         ez += wm * (mx * r01 - my * r00)
-    px, py, pz = (gx + ex) * d, (gy + ey) * d, (gz + ez) * d
+    px, py, pz = (gx + ex) * dt, (gy + ey) * dt, (gz + ez) * dt
     e00, e01, e02, e10, e11, e12, e20, e21, e22 = rodrigues(px, py, pz)
     n00 = r00 * e00 + r01 * e10 + r02 * e20
     n01 = r00 * e01 + r01 * e11 + r02 * e21

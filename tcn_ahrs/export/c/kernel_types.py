@@ -41,7 +41,8 @@ REAL, INT, BOOL = "REAL", "int", "bool"
 
 # the ops table's math functions -> the REAL wrappers the generated file defines (see HELPERS)
 MATH = {"sqrt": "r_sqrt", "sin": "r_sin", "cos": "r_cos", "tan": "r_tan", "exp": "r_exp", "atan2": "r_atan2",
-        "asin": "r_asin", "fabs": "r_fabs", "fmax": "r_fmax", "clip": "r_clip"}
+        "asin": "r_asin", "fabs": "r_fabs", "fmax": "r_fmax", "clip": "r_clip",
+        "max": "r_fmax", "abs": "r_fabs"}  # Python's max of two floats and abs, in the typed kernels
 # C keywords and <math.h> names a local of that name would shadow
 RESERVED = frozenset("""auto break case char const continue default do double else enum extern float for goto if
 inline int long register restrict return short signed sizeof static struct switch typedef union unsigned void volatile
@@ -68,7 +69,7 @@ class KernelTypes:
     first assignment, returns by their tuples): what :class:`~tcn_ahrs.export.c.translate.KernelToC`
     writes out."""
 
-    def __init__(self, module: ModuleType, prefix: str):
+    def __init__(self, module: ModuleType, prefix: str, plain: bool = False):
         self.prefix = prefix
         self.consts: Dict[str, object] = {k: v for k, v in vars(module).items()
                                           if re.fullmatch(r"[A-Z][A-Z0-9_]*", k) and isinstance(v, (int, float))
@@ -77,13 +78,14 @@ class KernelTypes:
         # the typed scalar kernels the module binds (qmul = jit(quat.qmul)), then its own kernels
         for name, obj in vars(module).items():
             fn = getattr(obj, "py_func", obj)
-            if inspect.isfunction(fn) and fn.__module__ in TYPED_MODULES:
+            if inspect.isfunction(fn) and fn.__module__ in TYPED_MODULES and not (plain and fn.__module__ == module.__name__):
                 if fn.__name__ != name:
                     raise ExportError(f"{module.__name__}.{name}: bind typed kernels under their own name")
                 self._add(ast.parse(inspect.getsource(fn)).body[0])
         tree = ast.parse(inspect.getsource(module))
         for node in tree.body:
-            if isinstance(node, ast.FunctionDef) and node.decorator_list:  # the @jit kernels
+            # the @jit kernels (or, plain: every top-level function, the typed kernels of classical.py)
+            if isinstance(node, ast.FunctionDef) and (node.decorator_list or plain):
                 self._add(node)
         self._infer()
 

@@ -179,7 +179,9 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
 
 def export_c(ckpt_path, out_dir, prefix: Optional[str] = None, overwrite: bool = False) -> Dict[str, str]:
     """Generate ``<prefix>.h`` and ``<prefix>.c`` (prefix: the checkpoint's stem) in ``out_dir``
-    from a residual checkpoint; closed-loop and open-loop (paper) checkpoints raise ExportError.
+    from a residual checkpoint or a classical estimator file of a family with a C runtime (the
+    ECF: :mod:`tcn_ahrs.export.c.classical`); closed-loop and open-loop (paper) checkpoints and
+    the other classical families raise ExportError.
     Existing files are refused unless ``overwrite``; the two are written as a set (hidden
     temporary names, renamed together at the end: never a header of one checkpoint beside the
     source of another)."""
@@ -193,7 +195,13 @@ def export_c(ckpt_path, out_dir, prefix: Optional[str] = None, overwrite: bool =
     existing = [str(p_) for p_ in paths.values() if p_.exists()]
     if existing and not overwrite:
         raise ExportError(f"export: {', '.join(existing)} already exist(s): choose another out= or pass overwrite=true")
-    gen = generate_c(model_from_checkpoint(ckpt_path), name)
+    if str(ckpt_path).endswith(".json"):  # a classical estimator chosen by tcn-ahrs search
+        from ...estimators.families import read_estimator
+        from .classical import generate_classical_c
+
+        gen = generate_classical_c(read_estimator(ckpt_path), name, source=Path(ckpt_path).name)
+    else:
+        gen = generate_c(model_from_checkpoint(ckpt_path), name)
     return staged_files(paths, lambda k, tmp: tmp.write_text(gen[k]), lambda m: ExportError(f"export: {m}"))
 
 

@@ -319,11 +319,13 @@ class KernelToC(KernelTypes):
 
 
 def kernel_c(module: ModuleType, prefix: str, roots: Sequence[str],
-             wide: Sequence[str] = ()) -> Tuple[str, Dict[str, str]]:
+             wide: Sequence[str] = (), plain: bool = False) -> Tuple[str, Dict[str, str]]:
     """The C functions (``static``, names ``prefix + kernel name``) of ``roots`` and what they
     call, translated from ``module``'s source; and the C signatures by kernel name. The kernels
-    in ``wide`` compute in double in every build (WREAL), the others in REAL."""
-    tr = KernelToC(module, prefix)
+    in ``wide`` compute in double in every build (WREAL), the others in REAL. ``plain``: the
+    module's kernels are its undecorated top-level functions (the typed scalar kernels of
+    :mod:`tcn_ahrs.kernels.classical`) instead of its ``@jit`` ones."""
+    tr = KernelToC(module, prefix, plain)
     tr.wide = frozenset(wide)
     names = tr.reachable(roots)
     return tr.emit(roots), {f: tr.signature(tr.fns[f]) for f in names}
