@@ -221,3 +221,48 @@ def test_cli_format(tmp_path):
     res = subprocess.run([sys.executable, script, f"ckpt={CKPTS / 'broad6.ckpt'}", f"out={out}", "format=tflite"],
                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert res.returncode != 0 and "format='tflite'" in res.stderr
+
+
+# ------------------------------------------------------------------ a tuned classical filter
+@pytest.mark.parametrize("name", ["tumvi6", "oxiod9"])
+def test_tuned_ecf_exports_to_onnx_and_torch_export(tmp_path, name):
+    """The tuned ECF files tcn-ahrs search shipped (checkpoints/tumvi6.json, oxiod9.json) export
+    as step and batch graphs in both formats (the filter's own tensor functions, its knobs and
+    calibration in): equal to the estimator evaluate runs (heading from the first sample's field)
+    over a simulated recording, a bad sample refused with the state unchanged."""
+    from tcn_ahrs.estimators.families import load_estimator
+
+    axes = 9 if name.endswith("9") else 6
+    path = CKPTS / f"{name}.json"
+    seq = simulate("walking", 8.0, 200.0, seed=5, axes=axes)
+    imu = imu_of(seq, axes)
+    est = load_estimator(path)
+    est.inner = est.inner.with_params(heading_ref="init")
+    ref = np.asarray(est.run(seq, init_quat=seq.quat[0]).quat)
+    onnx_files = export_onnx(path, tmp_path / f"{name}.onnx")
+    pt2_files = export_program(path, tmp_path / f"{name}.pt2")
+    for loader, f in ((OnnxStreaming, onnx_files["streaming"]), (OnnxBatch, onnx_files["batch"]),
+                      (ExportedStreaming, pt2_files["streaming"]), (ExportedBatch, pt2_files["batch"])):
+        q, w = loader(f).run(imu, 0.005, seq.quat[0])
+        assert angle(q, ref) < ANGLE, (loader.__name__, angle(q, ref))
+        assert np.abs(w - imu[:, :3]).max() < OMEGA  # no calibration in these files: omega is the gyro
+    s = OnnxStreaming(onnx_files["streaming"])
+    s.reset(seq.quat[0])
+    s.step(imu[0], 0.005)
+    before = s.state.copy()
+    bad = imu[1].copy()
+    bad[0] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        s.step(bad, 0.005)
+    assert np.array_equal(s.state, before)
+    assert read_onnx_metadata(onnx_files["streaming"])["family"] == "ecf"
+
+
+def test_classical_families_without_a_step_graph_are_named(tmp_path):
+    from tcn_ahrs.estimators.families import save_estimator
+
+    save_estimator(tmp_path / "m.json", "madgwick", 6, {}, None)
+    for fn in (export_onnx, export_program):
+        with pytest.raises(ExportError, match="classical family 'madgwick'; format=.* holds the residual models and "
+                                              "the classical family 'ecf'"):
+            fn(tmp_path / "m.json", tmp_path / "x.onnx")

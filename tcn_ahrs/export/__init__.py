@@ -284,10 +284,10 @@ def export_main(cfg) -> Dict[str, Path]:
     fmt = str(cfg.get("format", "torchscript"))
     if fmt not in FORMATS:
         raise ValueError(f"export: format={fmt!r}: expected one of {FORMATS}")
-    if str(cfg.ckpt).endswith(".json") and fmt != "c":
+    if str(cfg.ckpt).endswith(".json") and fmt == "torchscript":
         raise ValueError(f"export: {cfg.ckpt} is a classical estimator chosen by tcn-ahrs search; format={fmt} holds "
-                         "learned checkpoints only; format=c holds the tuned ECF (run the others with "
-                         "tcn_ahrs.estimators.families.load_estimator)")
+                         "learned checkpoints only; format=c, onnx and export hold the tuned ECF (run the others "
+                         "with tcn_ahrs.estimators.families.load_estimator)")
     if fmt == "c":
         from .c import export_c
 

@@ -261,8 +261,9 @@ def initial_state(spec: Dict, q0):
     lay = spec["layout"]
     s[lay["q0"][0]:lay["q0"][0] + 4] = np.asarray(q0, dtype=np.float64).reshape(4)
     s[lay["m_conj"][0]:lay["m_conj"][0] + 4] = spec["init"]["m_conj"]
-    off, (span, c) = lay["ring0"]
-    s[off:off + span * c] = np.tile(np.asarray(spec["init"]["ring0_row"], dtype=np.float64), span)
+    if "ring0" in lay:  # the residual models' first ring buffer (a classical step has none)
+        off, (span, c) = lay["ring0"]
+        s[off:off + span * c] = np.tile(np.asarray(spec["init"]["ring0_row"], dtype=np.float64), span)
     return s
 
 
@@ -341,7 +342,7 @@ class StatefulLoop:
 
 # ============================================================== export preparation
 SUPPORTED = ("the residual models (model.loop: backbone): checkpoints/broad9, broad6, general6, general9, "
-             "euroc6_small and checkpoints/residual/*.ckpt")
+             "euroc6_small and checkpoints/residual/*.ckpt; and tuned ECF files (checkpoints/tumvi6.json, oxiod9.json)")
 
 
 def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None, overwrite: bool = False,
@@ -357,7 +358,8 @@ def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None,
     from .backbone import ResidualStreaming
     from .inputs import ExportError
 
-    ck_meta = checkpoint_meta(load_checkpoint(ckpt_path), ckpt_path)  # a missing checkpoint is named first
+    classical = str(ckpt_path).endswith(".json")  # a classical estimator file of tcn-ahrs search
+    ck_meta = None if classical else checkpoint_meta(load_checkpoint(ckpt_path), ckpt_path)  # missing: named first
     existing = [str(t) for t in targets if Path(t).exists()]
     if existing and not overwrite:
         raise ExportError(f"export: {', '.join(existing)} already exist(s): choose another out= or pass overwrite=true")
@@ -366,6 +368,10 @@ def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None,
         folder.mkdir(parents=True, exist_ok=True)
         if not os.access(folder, os.W_OK):
             raise ExportError(f"export: cannot write into {folder} (read-only?): choose another out=")
+    if classical:
+        from .classical_step import prepare_classical
+
+        return prepare_classical(ckpt_path, fmt, onnx)
     model, meta = checkpoint_export_meta(ckpt_path, ck_meta, rate_hz)
     if getattr(model, "backbone", None) is None:
         kind = "closed-loop" if getattr(model, "closed", None) is not None else "open-loop (paper)"
