@@ -124,7 +124,7 @@ def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
             warnings.simplefilter("ignore")
             rows += _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp, p)
             # before the peers: onnxruntime's (RIANN's) idle threads must not share the cores
-            models = _c_models(p.get("c_models") or [], imu, dt, q0, n + warm, tmp) if p.get("c", True) else []
+            models = _c_models(p.get("c_models") or [], imu, dt, q0, n + warm, tmp, p) if p.get("c", True) else []
             rows += _peers(imu, dt, rate, n, warm)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -151,26 +151,26 @@ def bench_deploy(p: Dict[str, Any], seed: int = 0) -> Dict[str, Any]:
             "c_models": models, "footprint": footprint_rows(p["footprint_glob"])}
 
 
-def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path) -> List[Dict[str, Any]]:
-    """Each checkpoint's C loop (float build, -O2 and -march=native) on the same samples (its
-    axes' columns) beside VQF's C++ updateBatch of the same axes, in this run."""
-    from ..checkpoint import model_from_checkpoint
+def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path, p: Dict[str, Any]) -> List[Dict[str, Any]]:
+    """Each model's C loop (float build, -O2 and -march=native) on the same samples (its axes'
+    columns) beside VQF's C++ updateBatch of the same axes, and its ONNX and torch.export step
+    (``p["onnx"]``, ``p["export"]``), in this run. A model: a residual checkpoint or a tuned ECF
+    file (``.json``) of tcn-ahrs search."""
     from ..export.c import CRuntime, compile_c, export_c
-    from ..export.c.runtime import live_networks
 
     out = []
+    slow, n = int(p["slow_steps"]), total
     for i, path in enumerate(paths):
         row: Dict[str, Any] = {"ckpt": str(path)}
         try:
             f = _found(path)
-            model = model_from_checkpoint(f).eval()
-            axes = int(model.axes)
+            axes, live = _axes_and_networks(f)
             x = np.ascontiguousarray(imu[:, :axes], dtype=np.float32)
             name = f"cm{i}"  # one library file per model and build: ctypes reuses a loaded path
             gen = export_c(f, tmp, name, overwrite=True)
-            row.update(axes=axes, live_networks=list(live_networks(model)))
+            row.update(axes=axes, live_networks=live)
             rt = CRuntime(compile_c(gen["c"], tmp / f"lib{name}_O2.so", "float"), name, axes)
-            row["c_O2_us"] = _loop("", lambda: (rt.reset(q0), rt.run(x, dt)), total)["per_sample_us"]
+            row["c_O2_us"] = _loop("", lambda: (rt.reset(q0), rt.run(x, dt)), n)["per_sample_us"]
             row["state_bytes"] = rt.state_size
             so = compile_c(gen["c"], tmp / f"lib{name}_native.so", "float", None, ["-march=native"])
             row["c_native_us"] = _isolated_loop(so, name, axes, x, dt, q0, tmp)["per_sample_us"]
@@ -179,8 +179,42 @@ def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path) -> List[Dict[str,
             row["c_native_vs_vqf"] = row["c_native_us"] / row["vqf_us"]
         except Exception as e:  # noqa: BLE001 - a missing compiler, checkpoint or vqf: the row says why
             row["skipped"] = f"{type(e).__name__}: {e}"
+            out.append(row)
+            continue
+        xs = np.ascontiguousarray(imu[:, :axes])
+        for key, flag, steps in (("onnx_step_us", "onnx", slow), ("export_step_us", "export", max(5, slow // 10))):
+            if p.get(flag, True):
+                try:
+                    row[key] = _graph_step(f, flag, xs, dt, q0, steps, tmp / f"{name}_{flag}")["median_us"]
+                except Exception as e:  # noqa: BLE001 - the [deploy] extra missing: the row says why
+                    row[key + "_skipped"] = f"{type(e).__name__}: {e}"
         out.append(row)
     return out
+
+
+def _axes_and_networks(path: Path):
+    """(axes, the networks its C runtime runs) of a residual checkpoint or an estimator file."""
+    if str(path).endswith(".json"):
+        from ..estimators.families import read_estimator
+
+        return int(read_estimator(path)["axes"]), []
+    from ..checkpoint import model_from_checkpoint
+    from ..export.c.runtime import live_networks
+
+    model = model_from_checkpoint(path).eval()
+    return int(model.axes), list(live_networks(model))
+
+
+def _graph_step(path, fmt: str, imu, dt, q0, steps: int, out: Path) -> Dict[str, Any]:
+    """The median per-sample step of a model's ONNX (``fmt="onnx"``) or torch.export step graph."""
+    if fmt == "onnx":
+        from ..export.onnx_step import OnnxStreaming as Loader, export_onnx as export
+    else:
+        from ..export.program import ExportedStreaming as Loader, export_program as export
+    written = export(str(path), str(out) + (".onnx" if fmt == "onnx" else ".pt2"), "streaming", overwrite=True)
+    s = Loader(written["streaming"])
+    s.reset(q0)
+    return _steps(fmt, lambda k: s.step(imu[k], dt), steps, 5)
 
 
 def _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp: Path, p) -> List[Dict[str, Any]]:
@@ -222,26 +256,13 @@ def _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp: Path, p) -> List
                     rows.append(_steps("C runtime step (ctypes call per sample)", lambda k: rt.step(xf[k], dt), n, warm))
         except Exception as e:  # noqa: BLE001 - a missing compiler skips the rows, named
             rows.append(_skipped("C runtime", e))
-    if p.get("onnx", True):
-        try:
-            from ..export.onnx_step import OnnxStreaming, export_onnx
-
-            export_onnx(ckpt, str(tmp / "m.onnx"), "streaming", overwrite=True)
-            os_ = OnnxStreaming(str(next(tmp.glob("m*.onnx"))))
-            os_.reset(q0)
-            rows.append(_steps("ONNX OnnxStreaming step (onnxruntime)", lambda k: os_.step(imu[k], dt), slow, 10))
-        except Exception as e:  # noqa: BLE001 - the [deploy] extra missing
-            rows.append(_skipped("ONNX OnnxStreaming step", e))
-    if p.get("export", True):
-        try:
-            from ..export.program import ExportedStreaming, export_program
-
-            export_program(ckpt, str(tmp / "m.pt2"), "streaming", overwrite=True)
-            ex = ExportedStreaming(str(next(tmp.glob("m*.pt2"))))
-            ex.reset(q0)
-            rows.append(_steps("torch.export ExportedStreaming step", lambda k: ex.step(imu[k], dt), max(5, slow // 10), 2))
-        except Exception as e:  # noqa: BLE001
-            rows.append(_skipped("torch.export ExportedStreaming step", e))
+    for fmt, label, steps in (("onnx", "ONNX OnnxStreaming step (onnxruntime)", slow),
+                              ("export", "torch.export ExportedStreaming step", max(5, slow // 10))):
+        if p.get(fmt, True):
+            try:
+                rows.append(dict(_graph_step(ckpt, fmt, imu, dt, q0, steps, tmp / f"m_{fmt}"), name=label))
+            except Exception as e:  # noqa: BLE001 - the [deploy] extra missing
+                rows.append(_skipped(label, e))
     return rows
 
 
@@ -333,19 +354,24 @@ def markdown(res: Dict[str, Any]) -> str:
         lines += ["", f"Networks in `{Path(res['ckpt']).name}`'s C runtime: {', '.join(res['live_networks']) or 'none'} "
                   "(a network its inference knobs switch off is not generated: `tcn_ahrs.export.c.runtime.live_networks`)."]
     if res.get("c_models"):
-        lines += ["", "The C loop (float build) of other checkpoints, same run, same samples, beside VQF's C++ loop of "
-                  "the same axes:", "",
-                  "| checkpoint | axes | networks | C -O2 (µs) | C -march=native (µs) | VQF C++ (µs) | C / VQF (-O2, native) "
-                  "| RIANN / C (-O2) | sizeof(state) (B) |", "|---|---|---|---|---|---|---|---|---|"]
+        lines += ["", "Other models, same run, same samples (their axes' columns): the C loop (float build) beside "
+                  "VQF's C++ loop of the same axes, and the ONNX / torch.export step from Python beside RIANN's:", "",
+                  "| model | axes | networks | C -O2 (µs) | C -march=native (µs) | VQF C++ (µs) | C / VQF (-O2, native) "
+                  "| ONNX step (µs) | torch.export step (µs) | RIANN step / ONNX step | sizeof(state) (B) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         riann = next((r["median_us"] for r in res["rows"] if r["name"].startswith("RIANN") and "median_us" in r), None)
         for r in res["c_models"]:
+            label = Path(r["ckpt"]).name if str(r["ckpt"]).endswith(".json") else Path(r["ckpt"]).stem
             if "skipped" in r:
-                lines.append(f"| {Path(r['ckpt']).stem} | skipped: {r['skipped']} | | | | | | | |")
+                lines.append(f"| {label} | skipped: {r['skipped']} | | | | | | | | | |")
                 continue
-            rr = f"{riann / r['c_O2_us']:.0f}" if riann else "–"
-            lines.append(f"| {Path(r['ckpt']).stem} | {r['axes']} | {', '.join(r['live_networks']) or 'none'} | "
-                         f"{r['c_O2_us']:.2f} | {r['c_native_us']:.2f} | {r['vqf_us']:.2f} | {r['c_vs_vqf']:.1f}, "
-                         f"{r['c_native_vs_vqf']:.1f} | {rr} | {r['state_bytes']} |")
+            onnx = f"{r['onnx_step_us']:.1f}" if "onnx_step_us" in r else "–"
+            pt2 = f"{r['export_step_us']:.1f}" if "export_step_us" in r else "–"
+            ratio = f"{riann / r['onnx_step_us']:.2f}" if riann and "onnx_step_us" in r else "–"
+            nets = ", ".join(r["live_networks"]) or ("none (ECF)" if label.endswith(".json") else "none")
+            lines.append(f"| {label} | {r['axes']} | {nets} | {r['c_O2_us']:.2f} | {r['c_native_us']:.2f} | "
+                         f"{r['vqf_us']:.2f} | {r['c_vs_vqf']:.1f}, {r['c_native_vs_vqf']:.1f} | {onnx} | {pt2} | "
+                         f"{ratio} | {r['state_bytes']} |")
     c_rows = [r for r in res["rows"] if "state_bytes" in r]
     if c_rows:
         lines += ["", f"sizeof(state) of the C runtime: {c_rows[0]['state_bytes']} B (float backbone, the default), "

@@ -89,8 +89,10 @@ class SpeedDeploy:
     footprint_glob: str = "checkpoints/*.ckpt,checkpoints/residual/*.ckpt"  # comma-separated globs
     # more checkpoints whose C loop is timed in the same run, beside VQF's C++ loop of the same
     # axes: networks on (residual/oxiod9: ckpt's broad9 runs as the backbone alone, its networks off) and small
+    # and the tuned ECF files tcn-ahrs search shipped (C, ONNX and torch.export too)
     c_models: List[str] = field(default_factory=lambda: ["checkpoints/residual/oxiod9.ckpt",
-                                                         "checkpoints/euroc6_small.ckpt"])
+                                                         "checkpoints/euroc6_small.ckpt", "checkpoints/oxiod9.json",
+                                                         "checkpoints/tumvi6.json"])
 
 
 @dataclass
