@@ -3,16 +3,20 @@
 state' (S,) = step(sample (C,), dt (), state (S,))``, float64, the same contract and loaders as the
 residual models' step (:mod:`tcn_ahrs.export.stateless`: :class:`OnnxStreaming`, ``ExportedStreaming``).
 
-One sample is Eqs. 4-8 of :func:`tcn_ahrs.filters.ecf.ecf` on the calibrated readings, written
-with that filter's own tensor functions (``normalize``, ``field_gates``, ``gain_schedule``,
-``so3.exp``): the state carries the attitude matrix as the filter does. The first sample after
+One sample is Eqs. 4-8 of :func:`tcn_ahrs.filters.ecf.ecf` on the calibrated readings, written as
+few graph nodes as the equations allow (ONNX Runtime pays per node, not per flop): the attitude
+is one unit quaternion (the filter's matrix ``r <- r exp([phi]x)`` is ``q <- q ⊗ exp(phi)``, equal
+to round-off), the Hamilton product, the two rows of the attitude matrix the corrections read
+and the cross products are contractions with constant tensors read off :mod:`tcn_ahrs.so3` on
+the basis vectors (:func:`hamilton`, :func:`rotation_rows`, :func:`levi_civita`; nothing
+restated), the two corrections of Eqs. 5-6 one batched cross product. The first sample after
 ``reset(q0)`` only fixes the start (9 axes: the magnetic frame of its field, as
 :func:`~tcn_ahrs.filters.common.magnetic_from_nav`); its output is q0. State layout::
 
     t       (1,)  samples since reset (0: the next one starts the filter)
     q0      (4,)  the attitude given to reset
     m_conj  (4,)  9 axes: the magnetic frame's conjugate (set at the first sample)
-    r       (9,)  the attitude nav_from_body (magnetic frame for 9 axes), row by row
+    q       (4,)  the attitude nav_from_body (magnetic frame for 9 axes), unit
     elapsed (1,)  seconds since the first sample (Eq. 8's t)
 """
 from __future__ import annotations
@@ -26,10 +30,38 @@ from torch import Tensor, nn
 
 from .. import so3
 from ..conventions import GRAVITY
-from ..filters.common import field_gates, gain_schedule, normalize
 
 F64 = torch.float64
-LAYOUT = (("t", 1), ("q0", 4), ("m_conj", 4), ("r", 9), ("elapsed", 1))
+LAYOUT = (("t", 1), ("q0", 4), ("m_conj", 4), ("q", 4), ("elapsed", 1))
+
+
+def hamilton() -> Tensor:
+    """E (4, 4, 4) with ``(p ⊗ q)_i = sum_jk E[i, j, k] p_j q_k``: :func:`so3.quat_mul` on the basis."""
+    e, out = torch.eye(4, dtype=F64), torch.zeros(4, 4, 4, dtype=F64)
+    for j in range(4):
+        for k in range(4):
+            out[:, j, k] = so3.quat_mul(e[j], e[k])
+    return out
+
+
+def levi_civita() -> Tensor:
+    """(3, 9) with ``u x v = levi_civita() @ (u v^T).flatten()``: the cross product on the basis."""
+    e, out = torch.eye(3, dtype=F64), torch.zeros(3, 3, 3, dtype=F64)
+    for j in range(3):
+        for k in range(3):
+            out[:, j, k] = torch.linalg.cross(e[j], e[k])
+    return out.reshape(3, 9)
+
+
+def rotation_rows(rows=(2, 0)) -> Tensor:
+    """(3 len(rows), 16): rows ``rows`` of the rotation matrix of a unit q as ``T @ (q q^T).flatten()``
+    (``q ⊗ (0, v) ⊗ q*`` through :func:`hamilton`, i.e. :func:`so3.quat_rotate`; rows (0, 1, 2):
+    the whole matrix)."""
+    h = hamilton()
+    conj = torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=F64)
+    # (q ⊗ v ⊗ q*)_i = sum E[i, a, d] E[a, b, c] q_b v_c conj_d q_d: T[i, c, b, d]
+    t = torch.einsum("iad,abc,d->icbd", h, h, conj)
+    return torch.cat([t[r + 1, 1:4].reshape(3, 16) for r in rows], 0)
 
 
 class ECFStep(nn.Module):
@@ -52,7 +84,16 @@ class ECFStep(nn.Module):
             inv[3 * s:3 * s + 3, 3 * s:3 * s + 3] = np.linalg.inv(m)
         bias = np.concatenate([cal.gyro_bias, cal.acc_bias, cal.hard_iron])[:c]
         self.register_buffer("cal_inv", torch.tensor(inv, dtype=F64))
-        self.register_buffer("cal_bias", torch.tensor(bias, dtype=F64))
+        self.register_buffer("cal_offset", torch.tensor(inv @ bias, dtype=F64))   # inv(A) (x - b) = inv(A) x - this
+        self.register_buffer("ham", hamilton().permute(0, 2, 1).reshape(16, 4))  # (ham @ p).reshape(4, 4) @ q = p ⊗ q
+        self.register_buffer("rows", rotation_rows((2, 0)))
+        self.register_buffer("matrix", rotation_rows((0, 1, 2)))
+        self.register_buffer("eps", levi_civita())
+        self.register_buffer("eps_t", levi_civita().T.contiguous())  # its own buffer: a view would alias in scan
+        self.register_buffer("conj", torch.tensor([1.0, 0.0, 0.0, -1.0], dtype=F64))
+        self.register_buffer("about_up", torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]], dtype=F64).T)
+        tt = max(self.knobs["t_init"], 1e-12)
+        self.ramp = (self.knobs["k_init"] - self.knobs["k_norm"]) / tt     # Eq. 8's slope, 1/s²
         self.atan2 = onnx_ops().atan2 if onnx else torch.atan2
         self.layout: Dict[str, Tuple[int, Tuple[int, ...]]] = {}
         off = 0
@@ -61,47 +102,62 @@ class ECFStep(nn.Module):
             off += n
         self.state_size = off
 
-    def _part(self, state: Tensor, name: str) -> Tensor:
-        off, (n,) = self.layout[name]
-        return state[off:off + n]
-
     def initial_state(self, q0: Tensor) -> Tensor:
         q = q0.to(F64).reshape(4)
         return torch.cat([torch.zeros(1, dtype=F64), q / torch.sqrt((q * q).sum()),
-                          torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64), torch.zeros(10, dtype=F64)])
+                          torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64), torch.zeros(5, dtype=F64)])
+
+    def _mul(self, p: Tensor, q: Tensor) -> Tensor:
+        """p ⊗ q as two matrix products with the constant Hamilton tensor."""
+        return (self.ham @ p).reshape(4, 4) @ q
 
     def forward(self, sample: Tensor, dt: Tensor, state: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        k = {n: torch.full((1,), v, dtype=F64) for n, v in self.knobs.items()}
-        x = self.cal_inv @ (sample.to(F64) - self.cal_bias)
+        k = self.knobs
+        x = self.cal_inv @ sample.to(F64) - self.cal_offset          # calibrated readings
         dt = dt.to(F64).reshape(())
         gyro, acc = x[0:3], x[3:6]
-        mag = x[6:9] if self.axes == 9 else None
-        first = self._part(state, "t")[0] < 0.5
-        q0, m_conj = self._part(state, "q0"), self._part(state, "m_conj")
-        r = self._part(state, "r").reshape(3, 3)
+        first = state[0:1].reshape(()) < 0.5
+        # (static shapes: inside the batch graph's scan the state's length is a symbol)
+        q0, m_conj, q = state[1:5].reshape(4), state[5:9].reshape(4), state[9:13].reshape(4)
         # the start (the first sample): 9 axes in the magnetic frame of its field
-        q_start, m_start = q0, m_conj
-        if mag is not None:
-            v = so3.quat_rotate(q0, mag)
+        q_start = q0
+        if self.axes == 9:
+            mag = x[6:9]
+            v = (self.matrix @ (q0[:, None] * q0[None, :]).reshape(16)).reshape(3, 3) @ mag   # R(q0) m
             h = 0.5 * (0.5 * math.pi - self.atan2(v[1], v[0]))
-            zero = torch.zeros((), dtype=F64)
-            q_start = so3.quat_mul(torch.stack([torch.cos(h), zero, zero, torch.sin(h)]), q0)
-            m_start = torch.stack([torch.cos(h), zero, zero, -torch.sin(h)])
-        # one step of the filter (Eqs. 4-8)
-        t = self._part(state, "elapsed")[0] + dt
-        acc_ok, mag_ok = field_gates(acc[None], None if mag is None else mag[None], k["a_min"], k["m_min"],
-                                     k["m_max"], GRAVITY)
-        gain = gain_schedule(t.reshape(1, 1), k["k_norm"], k["k_init"], k["t_init"])[0, 0]
-        e = (gain * acc_ok[0]) * torch.linalg.cross(normalize(acc), r[2])                  # Eq. 5
-        if mag is not None:
-            e = e + (gain * mag_ok[0]) * torch.linalg.cross(normalize(torch.linalg.cross(mag, acc)), r[0])  # Eq. 6
-        r_next = r @ so3.exp((gyro + e) * dt)                                               # Eq. 4
-        r_out = torch.where(first, so3.quat_to_matrix(q_start), r_next)
-        m_out = torch.where(first, m_start, m_conj)
-        quat = so3.quat_mul(m_out, so3.matrix_to_quat(r_out))
+            mq = self.about_up @ torch.stack([torch.cos(h), torch.sin(h)])   # [cos h, 0, 0, sin h]
+            q_start = self._mul(mq, q0)
+            m_conj = torch.where(first, mq * self.conj, m_conj)
+        # Eqs. 5-8: the unit specific force, the gates, the scheduled gain
+        t = state[13:14].reshape(()) + dt
+        an = torch.linalg.vector_norm(acc)
+        acc_ok = torch.abs(an - GRAVITY) < k["a_min"]                     # Eq. 7
+        gain = k["k_norm"] + torch.relu(k["t_init"] - t) * self.ramp      # Eq. 8
+        measured = acc / torch.clamp(an, min=1e-30)                      # a^
+        weights = torch.where(acc_ok, gain, 0.0).reshape(1)
+        if self.axes == 9:
+            mn = torch.linalg.vector_norm(mag)
+            east = self.eps @ (mag[:, None] * acc[None, :]).reshape(9)     # m x a
+            east = east / torch.clamp(torch.linalg.vector_norm(east), min=1e-30)
+            mag_ok = acc_ok & (mn > k["m_min"]) & (mn < k["m_max"])
+            measured = torch.stack([measured, east])
+            weights = torch.cat([weights, torch.where(mag_ok, gain, 0.0).reshape(1)])
+        measured = measured.reshape(-1, 3)
+        # C^T up and C^T east: the attitude matrix's third and first rows
+        rows = (self.rows @ (q[:, None] * q[None, :]).reshape(16)).reshape(2, 3)[:measured.shape[0]]
+        crosses = (measured[:, :, None] * rows[:, None, :]).reshape(-1, 9) @ self.eps_t   # Eqs. 5-6
+        e = weights @ crosses
+        phi = (gyro + e) * dt                                             # Eq. 4: q <- q ⊗ exp(phi)
+        # exp(phi) without so3.quat_exp's small-angle branches (half the nodes): sin(t/2)/t at
+        # t >= 1e-150 is exact to round-off in float64 (0.5 at the floor)
+        theta = torch.sqrt(torch.clamp((phi * phi).sum(), min=1e-300))
+        dq = torch.cat([torch.cos(0.5 * theta).reshape(1), torch.sin(0.5 * theta) / theta * phi])
+        q_next = self._mul(q, dq)
+        q_next = q_next / torch.linalg.vector_norm(q_next)
+        q_out = torch.where(first, q_start, q_next)
+        quat = self._mul(m_conj, q_out)
         quat = torch.where(quat[0] < 0.0, -quat, quat)  # w >= 0 representative
-        new_state = torch.cat([(self._part(state, "t") + 1.0), q0, m_out, r_out.reshape(9),
-                               torch.where(first, torch.zeros_like(t), t).reshape(1)])
+        new_state = torch.cat([state[0:1] + 1.0, q0, m_conj, q_out, torch.where(first, 0.0, t).reshape(1)])
         return quat, gyro, new_state
 
 

@@ -133,7 +133,7 @@ class OnnxStreaming(StatefulLoop):
         self._setup(md)
 
     def _run_graph(self, x, dt, state):
-        q, w, s = self.session.run(None, {"sample": x, "dt": np.asarray(dt, dtype=np.float64), "state": state})
+        q, w, s = self.session.run(None, {"sample": x, "dt": np.array(dt), "state": state})
         return q, w, s
 
 

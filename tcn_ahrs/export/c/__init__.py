@@ -1,4 +1,5 @@
-"""``format: c``: a dependency-free C99 runtime of a residual checkpoint (``<name>.h`` + ``<name>.c``).
+"""``format: c``: a dependency-free C99 runtime of a residual checkpoint or of a tuned ECF file of
+``tcn-ahrs search`` (:mod:`tcn_ahrs.export.c.classical`) (``<name>.h`` + ``<name>.c``).
 
 What is generated and from where (nothing of the math restated by hand):
 
@@ -8,8 +9,11 @@ What is generated and from where (nothing of the math restated by hand):
 * the networks are the folded float32 weights of :func:`~tcn_ahrs.export.fused.fuse_residual` in
   the flat layout of :func:`tcn_ahrs.export.flat.flat_networks` (what
   :class:`~tcn_ahrs.streaming.BackboneStreaming` runs), read by one generic ring-buffer dilated
-  causal convolution (``model.c.in``); GELU as ``u (1 + erf(u))`` with the rational erf of
-  :func:`tcn_ahrs.export.flat.erf_rational` (its coefficients written in);
+  causal convolution (``model.c.in``) over up to ``runtime.BLOCK`` samples per pass (``name_run``;
+  ``name_step`` passes one: the same floats), its sums on GNU C vectors with an AVX2 copy chosen at
+  run time on x86 (no fused multiply-add: every path the scalar loop's floats); GELU as
+  ``u (1 + erf(u))`` with the rational erf of :func:`tcn_ahrs.export.flat.erf_rational` (its
+  coefficients written in);
 * the per-sample composition (networks -> gyro residual and trusts -> backbone calls -> output)
   is the template ``model.c.in``, written once after ``_backbone_steps`` of :mod:`tcn_ahrs.streaming.backbone`
   (and ``ResidualStreaming._filter`` / ``_start``).
