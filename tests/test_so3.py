@@ -403,3 +403,21 @@ def test_the_tensor_and_the_scalar_hamilton_product_are_one_expression():
     phi = 0.3 * torch.randn(64, 3, dtype=torch.float64, generator=g)
     step = torch.tensor([quat_step(*a.tolist(), *f.tolist()) for a, f in zip(qn, phi)], dtype=torch.float64)
     assert torch.allclose(step, so3.quat_normalize(so3.quat_mul(qn, so3.quat_exp(phi))), atol=1e-14)
+
+
+def test_constant_tensor_forms_equal_so3():
+    """The ECF step graph's contractions (tcn_ahrs/export/classical_step.py) are so3's products
+    read off on the basis vectors: the Hamilton product, the rotation matrix of a unit quaternion
+    and the cross product, on random inputs (float64, 1e-15)."""
+    from tcn_ahrs.export.classical_step import hamilton, levi_civita, rotation_rows
+
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        p, q = torch.randn(4, generator=g, dtype=torch.float64), torch.randn(4, generator=g, dtype=torch.float64)
+        h = hamilton().permute(0, 2, 1).reshape(16, 4)
+        assert torch.allclose((h @ p).reshape(4, 4) @ q, so3.quat_mul(p, q), atol=1e-14)
+        u = so3.quat_normalize(q)
+        r = (rotation_rows((0, 1, 2)) @ (u[:, None] * u[None, :]).reshape(16)).reshape(3, 3)
+        assert torch.allclose(r, so3.quat_to_matrix(u), atol=1e-15)
+        a, b = p[:3], q[:3]
+        assert torch.allclose(levi_civita() @ (a[:, None] * b[None, :]).reshape(9), torch.linalg.cross(a, b), atol=1e-15)
