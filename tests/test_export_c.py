@@ -220,13 +220,13 @@ def test_shipped_checkpoint_matches_the_streaming_runtime_on_broad(runtimes, nam
 def test_vector_loops_equal_the_scalar_loops(built, tmp_path, flags):
     """The networks' vector sums (GNU C vectors: SSE, NEON; the AVX2 copy chosen at run time;
     AVX with -march=native) add each output in the scalar loop's order, a multiply then an add
-    per lane: the same floats out as -DTCN_AHRS_NO_DISPATCH's (portable vectors only) and
-    -DTCN_AHRS_NO_VECTOR's (scalar loops) builds."""
+    per lane: the same floats out as -DTCN_AHRS_NO_DISPATCH's (portable vectors only),
+    -DTCN_AHRS_NO_VECTOR's (scalar loops) and -DTCN_AHRS_BLOCK=1's (one sample per pass) builds."""
     c_vec, _, paths = built["oxiod9"]
     if flags:
         c_vec = CRuntime(compile_c(paths["c"], tmp_path / "libv.so", "double", CC, flags), "oxiod9", 9)
     others = [CRuntime(compile_c(paths["c"], tmp_path / f"lib{i}.so", "double", CC, [f, *flags]), "oxiod9", 9)
-              for i, f in enumerate(["-DTCN_AHRS_NO_VECTOR", "-DTCN_AHRS_NO_DISPATCH"])]
+              for i, f in enumerate(["-DTCN_AHRS_NO_VECTOR", "-DTCN_AHRS_NO_DISPATCH", "-DTCN_AHRS_BLOCK=1"])]
     imu = _imu(simulate("walking", 20.0, 200.0, seed=3, axes=9), 9)
     outs = []
     for rt in (c_vec, *others):
@@ -234,7 +234,7 @@ def test_vector_loops_equal_the_scalar_loops(built, tmp_path, flags):
         code, out = rt.run(imu, np.float32(0.005))
         assert code == 0
         outs.append(out)
-    assert np.array_equal(outs[0], outs[1]) and np.array_equal(outs[0], outs[2])
+    assert all(np.array_equal(outs[0], o) for o in outs[1:])
 
 
 @needs_cc
