@@ -159,7 +159,7 @@ def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path, p: Dict[str, Any]
     from ..export.c import CRuntime, compile_c, export_c
 
     out = []
-    slow, n = int(p["slow_steps"]), total
+    slow = int(p["slow_steps"])
     for i, path in enumerate(paths):
         row: Dict[str, Any] = {"ckpt": str(path)}
         try:
@@ -170,7 +170,7 @@ def _c_models(paths: List[str], imu, dt, q0, total, tmp: Path, p: Dict[str, Any]
             gen = export_c(f, tmp, name, overwrite=True)
             row.update(axes=axes, live_networks=live)
             rt = CRuntime(compile_c(gen["c"], tmp / f"lib{name}_O2.so", "float"), name, axes)
-            row["c_O2_us"] = _loop("", lambda: (rt.reset(q0), rt.run(x, dt)), n)["per_sample_us"]
+            row["c_O2_us"] = _loop("", lambda: (rt.reset(q0), rt.run(x, dt)), total)["per_sample_us"]
             row["state_bytes"] = rt.state_size
             so = compile_c(gen["c"], tmp / f"lib{name}_native.so", "float", None, ["-march=native"])
             row["c_native_us"] = _isolated_loop(so, name, axes, x, dt, q0, tmp)["per_sample_us"]

@@ -7,7 +7,6 @@ The same API as the residual models' runtime (``name_reset``, ``name_step``, ``n
 from __future__ import annotations
 
 import re
-from pathlib import Path
 from typing import Any, Dict
 
 import numpy as np
@@ -16,9 +15,9 @@ from ...conventions import GRAVITY, INPUT_LIMITS, MAX_DT
 from ...kernels import classical as KC
 from ...kernels import quat as KQ
 from ..inputs import ExportError
+from .runtime import _f64, template
 from .translate import kernel_c
 
-TEMPLATES = Path(__file__).resolve().parent
 C_FAMILIES = ("ecf",)  # the classical families with a C runtime
 
 
@@ -51,9 +50,7 @@ def generate_classical_c(doc: Dict[str, Any], name: str, source: str = "a tcn-ah
         "M_MIN": repr(float(knobs["m_min"])), "M_MAX": repr(float(knobs["m_max"])), "GRAVITY": repr(float(GRAVITY)),
         "GYRO_INV": _lits(inv(cal.gyro_matrix)), "ACC_INV": _lits(inv(cal.acc_matrix)),
         "MAG_INV": _lits(inv(cal.mag_matrix)), "GYRO_BIAS": _lits(cal.gyro_bias), "ACC_BIAS": _lits(cal.acc_bias),
-        "HARD_IRON": _lits(cal.hard_iron), "LIMITS": ", ".join(f"{float(v)!r}f" for v in INPUT_LIMITS[:axes]),
-        "MAX_DT": repr(float(MAX_DT)),
-        "HELPERS": (TEMPLATES / "helpers.h.in").read_text(),
+        "HARD_IRON": _lits(cal.hard_iron), "LIMITS": _f64(INPUT_LIMITS[:axes]), "MAX_DT": repr(float(MAX_DT)),
     }
 
     def fill(text: str) -> str:
@@ -62,5 +59,4 @@ def generate_classical_c(doc: Dict[str, Any], name: str, source: str = "a tcn-ah
     info = {"axes": axes, "family": fam, "knobs": {k: float(v) for k, v in knobs.items()},
             "weights_float32": 0, "ring_floats": 0, "layers": [], "weight_bytes": 0, "live_networks": [],
             "flops_per_sample": 0}
-    return {"h": fill((TEMPLATES / "ecf.h.in").read_text()), "c": fill((TEMPLATES / "ecf.c.in").read_text()),
-            "info": info}
+    return {"h": fill(template("ecf.h.in")), "c": fill(template("ecf.c.in")), "info": info}

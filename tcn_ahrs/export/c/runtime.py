@@ -21,16 +21,20 @@ TEMPLATES = Path(__file__).resolve().parent  # model.h.in, model.c.in, helpers.h
 
 
 def template(name: str) -> str:
-    """A C template shipped beside this module (``model.c.in`` has the helpers written in)."""
+    """A C template shipped beside this module; a source template (``*.c.in``) gets the REAL
+    helpers and the input contract (``helpers.h.in``, ``contract.c.in``) written in."""
     text = (TEMPLATES / name).read_text()
-    return text.replace("@HELPERS@", (TEMPLATES / "helpers.h.in").read_text()) if name == "model.c.in" else text
+    if not name.endswith(".c.in"):
+        return text
+    return (text.replace("@HELPERS@", (TEMPLATES / "helpers.h.in").read_text())
+            .replace("@CONTRACT@", (TEMPLATES / "contract.c.in").read_text()))
 
 ROOTS_6 = ("coefficients", "gyro_update", "acc_update", "quat6", "qmul")
 ROOTS_9 = ROOTS_6 + ("mag_update", "quat9")
-# the kernels computed in double in every build (the low-pass filters and their coefficients;
-# helpers.h.in WREAL says why)
 # samples per pass of the networks in name_run (each weight read once per block, not per sample)
 BLOCK = 8
+# the kernels computed in double in every build (the low-pass filters and their coefficients;
+# helpers.h.in WREAL says why)
 WIDE_KERNELS = ("butter", "coefficients", "lp_begin", "lp", "lp_end", "lp3", "mag_update")
 
 
