@@ -3,9 +3,9 @@ state'`` (what ONNX and ``torch.export`` can hold: no attributes mutated, no Pyt
 exceptions), and the small Python loop that carries the state between calls.
 
 Built from a :class:`~tcn_ahrs.export.backbone.ResidualStreaming` (its fused float32 weights, its
-head rows, its knobs) and the backbone kernel :mod:`tcn_ahrs.kernels.backbone` read with torch
-tensors (:func:`tcn_ahrs.kernels.ops.load_kernel`: the same source the numba and TorchScript
-runtimes compile; nothing of the filter is restated here). What this module writes itself is the
+head rows, its knobs) and the backbone's step on vectors (:class:`~tcn_ahrs.export.backbone_graph.BackboneGraph`:
+the kernel :mod:`tcn_ahrs.kernels.backbone` in a few hundred graph nodes instead of ~2,400 scalar
+ones, held equal to it by tests/test_backbone_graph.py). What this module writes itself is the
 glue of ``ResidualStreaming._filter`` in tensor form (the trusts, the clipped gyro residual, the
 skipped zero accelerometer/magnetometer samples, the magnetic frame of the first sample) because
 that method branches on Python floats; tests/test_export_formats.py holds the numbers equal.
@@ -17,15 +17,17 @@ except what :meth:`ResidualStep.initial_state` writes (``reset(q0)``)::
     q0       (4,)              the attitude given to reset (w, x, y, z, nav_from_body, ENU)
     m_conj   (4,)              9 axes: the magnetic frame's conjugate (set at the first sample)
     backbone (N_STATE,)        the backbone's state (kernels/backbone_layout.STATE)
+    coeff    (22,)             the backbone's coefficients and the dt they are for (0: none yet)
     ring0    (span0, C)        the first layer's ring buffer (raw samples; float32 values)
     ring<i>  (G, span_i, C_i)  hidden layer i's ring buffer (float32 values)
 
 The rings are time-major, shifted one row per sample (oldest first): the newest sample's taps are
 rows ``0, d, 2d, ...``, ``ResidualStreaming``'s products without a data-dependent index. The
-backbone's coefficients are recomputed from ``dt`` every step (the same numbers as the cached ones).
+backbone's coefficients are recomputed when ``dt`` changes (the same numbers as the cached ones).
 
 ONNX Runtime has no float64 Tan, Atan or Asin: :func:`onnx_ops` uses ``tan = sin / cos`` and a
-float32 ``atan2`` refined by one float64 step (``asin`` through it); float64 outside the networks.
+float32 ``atan2`` refined by one float64 step (the backbone's dip is an atan2); float64 outside
+the networks.
 """
 from __future__ import annotations
 
@@ -39,15 +41,16 @@ from torch import Tensor, nn
 
 from ..kernels import backbone as K
 from ..conventions import INPUT_LIMITS, MAX_DT
-from ..kernels.ops import load_kernel, torch_ops
+from ..kernels.ops import torch_ops
+from .backbone_graph import N_COEFF_GRAPH, BackboneGraph
 from .fused import gelu_scaled
 
 F64 = torch.float64
 
 
 def onnx_ops() -> SimpleNamespace:
-    """The torch ops table with float64 tan/atan2/asin built from ops ONNX Runtime runs in
-    float64 (see the module docstring)."""
+    """The torch ops table with float64 tan and atan2 built from ops ONNX Runtime runs in float64
+    (see the module docstring; the graphs need no asin)."""
     base = vars(torch_ops()).copy()
 
     def tan(x):
@@ -58,16 +61,11 @@ def onnx_ops() -> SimpleNamespace:
         a0 = torch.atan2(y.float(), x.float()).double()  # within ~1e-7 rad
         c0, s0 = torch.cos(a0), torch.sin(a0)
         num = y * c0 - x * s0        # r sin(a − a0)
-        den = x * c0 + y * s0        # r cos(a − a0) > 0 near a0
-        e = num / torch.where(den > 0.0, den, torch.ones_like(den))
-        e = torch.where(den > 0.0, e - e * e * e / 3.0, torch.zeros_like(e))  # atan(e), |e| ~ 1e-7
-        return a0 + e
+        den = x * c0 + y * s0        # r cos(a − a0) ~ r > 0: a − a0 = atan(num / den) = num / den to
+        # (1e-7)³ / 3; x = y = 0 gives 0 / 1e-300 = 0 (atan2(0, 0) = 0)
+        return a0 + num / (den + 1e-300)
 
-    def asin(x):  # only under nograd (the dip angle), as the torch table: clamped to ±1
-        x = torch.clamp(x, -1.0, 1.0)
-        return atan2(x, torch.sqrt(torch.clamp(1.0 - x * x, min=0.0)))
-
-    base.update(name="torch_onnx", tan=tan, atan2=atan2, asin=asin)
+    base.update(name="torch_onnx", tan=tan, atan2=atan2)
     return SimpleNamespace(**base)
 
 
@@ -81,7 +79,8 @@ class ResidualStep(nn.Module):
 
     def __init__(self, rs: nn.Module, onnx: bool = False):
         super().__init__()
-        self.T = load_kernel(K, onnx_ops() if onnx else torch_ops())
+        self.ops = onnx_ops() if onnx else torch_ops()
+        self.backbone = BackboneGraph(rs.params, bool(rs.use_backbone_mag), self.ops)
         self.axes = c = int(rs.axes)
         self.groups = g = int(rs.groups)
         self.kernel_size = k = int(rs.kernel_size)
@@ -104,11 +103,16 @@ class ResidualStep(nn.Module):
         self.trust_scales = [float(v) for v in rs.trust_scales]
         self.bias_trust_power = float(rs.bias_trust_power)
         self.params = [float(v) for v in rs.params]
-        self.register_buffer("initial_backbone", torch.tensor(rs.initial_state, dtype=F64))
-        self.register_buffer("bias0", torch.tensor(rs.bias0, dtype=F64))
+        # the backbone's state at the start around its attitude: the initial state with the bias prior
+        init = torch.tensor(rs.initial_state, dtype=F64)
+        init[K.S_BIAS:K.S_BIAS + 3] = torch.tensor(rs.bias0, dtype=F64)
+        self.register_buffer("init_head", init[:K.S_GQ].clone())
+        self.register_buffer("init_tail", init[K.S_GQ + 4:].clone())
+        self.register_buffer("conj", torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=F64))
         # the state layout
         shapes: List[Tuple[str, Tuple[int, ...]]] = [("t", (1,)), ("q0", (4,)), ("m_conj", (4,)),
-                                                     ("backbone", (K.N_STATE,)), ("ring0", (int(rs.first_span), c))]
+                                                     ("backbone", (K.N_STATE,)), ("coeff", (N_COEFF_GRAPH,)),
+                                                     ("ring0", (int(rs.first_span), c))]
         for i, (span, w) in enumerate(zip(rs.spans, rs.step_weights)):
             shapes.append((f"ring{i + 1}", (g, int(span), int(w.shape[1]) // k)))
         self.layout: Dict[str, Tuple[int, Tuple[int, ...]]] = {}
@@ -131,7 +135,8 @@ class ResidualStep(nn.Module):
         span, c = self.layout["ring0"][1]
         ring0 = self.input_mean.to(self.net_dtype).to(F64).reshape(1, c).expand(span, c).reshape(-1)
         head = torch.cat([torch.zeros(1, dtype=F64), q / torch.sqrt((q * q).sum()),
-                          torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64), torch.zeros(K.N_STATE, dtype=F64), ring0])
+                          torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64),
+                          torch.zeros(K.N_STATE + N_COEFF_GRAPH, dtype=F64), ring0])
         return torch.cat([head, torch.zeros(self.state_size - head.shape[0], dtype=F64)])
 
     # ---------------------------------------------------------------- networks
@@ -155,8 +160,33 @@ class ResidualStep(nn.Module):
         return v, rings
 
     # ---------------------------------------------------------------- step
+    def _start(self, state: Tensor, x: Tensor) -> Tuple[Tensor, Tensor]:
+        """The backbone's state at the first sample (from q0; 9 axes in the magnetic frame of the
+        sample's field, :func:`tcn_ahrs.filters.common.magnetic_from_nav`) and m_conj."""
+        bb = self.backbone
+        q, m_conj = self._part(state, "q0"), self._part(state, "m_conj")
+        if self.use_mag:
+            v = bb.rot(q) @ x[6:9]
+            hh = 0.5 * (0.5 * math.pi - self.ops.atan2(v[1], v[0]))
+            mq = bb.mag_axis @ torch.stack([torch.cos(hh), torch.sin(hh)])     # [cos h, 0, 0, sin h]
+            q = bb.mul(mq, q)
+            m_conj = mq * self.conj
+        else:
+            m_conj = m_conj.clone()
+        parts = [q / torch.sqrt((q * q).sum()), self.init_tail]
+        return torch.cat(([self.init_head] if K.S_GQ else []) + parts), m_conj
+
+    def _coeff_kept(self, state: Tensor, dt: Tensor) -> Tensor:
+        return self._part(state, "coeff").clone()
+
+    def _coeff_new(self, state: Tensor, dt: Tensor) -> Tensor:
+        return self.backbone.coefficients(dt)
+
+    def _carry(self, state: Tensor, x: Tensor) -> Tuple[Tensor, Tensor]:
+        """Every other sample: the backbone's state and m_conj as they are."""
+        return self._part(state, "backbone").clone(), self._part(state, "m_conj").clone()
+
     def forward(self, sample: Tensor, dt: Tensor, state: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        T = self.T
         x = sample.to(F64)
         dt = dt.to(F64).reshape(())
         v, rings = self._networks(sample, state)
@@ -169,47 +199,22 @@ class ResidualStep(nn.Module):
                 trusts[2] = self.trust_scales[2] * torch.pow(tr / self.trust_max, self.bias_trust_power)
         lim = self.gyro_clip
         g = x[0:3] - torch.clamp(self.gyro_scale * torch.tanh(-v[0:3]), -lim, lim)
-        # the backbone's start at the first sample after reset (ResidualStreaming._start)
+        # the backbone's start at the first sample after reset (ResidualStreaming._start): a branch
+        # of its own (ONNX If), so the other samples do not compute it
+        bb = self.backbone
         t = self._part(state, "t")[0]
-        first = t < 0.5
-        q = list(self._part(state, "q0").unbind(0))
-        m_conj = list(self._part(state, "m_conj").unbind(0))
-        if self.use_mag:
-            v0, v1, _ = T.qrot(q[0], q[1], q[2], q[3], x[6], x[7], x[8])
-            hh = 0.5 * (0.5 * math.pi - T.atan2(v1, v0))
-            ch, sh = torch.cos(hh), torch.sin(hh)
-            zero = 0.0 * ch
-            q = list(T.qmul(ch, zero, zero, sh, q[0], q[1], q[2], q[3]))
-            start_conj = [ch, zero, zero, -sh]
-            m_conj = [torch.where(first, a, b) for a, b in zip(start_conj, m_conj)]
-        qs = torch.stack(q)
-        qs = qs / torch.sqrt((qs * qs).sum())
-        init = torch.cat([self.initial_backbone[:K.S_GQ], qs, self.initial_backbone[K.S_GQ + 4:K.S_BIAS],
-                          self.bias0, self.initial_backbone[K.S_BIAS + 3:]])
-        s = list(torch.where(first, init, self._part(state, "backbone")).unbind(0))
-        # one backbone step (the kernel, torch reading)
-        p = self.params
-        c: List = [None] * K.N_COEFF
-        T.coefficients(p, dt, c)
-        T.gyro_update(s, p, c, g[0], g[1], g[2])
-        old = list(s)
-        T.acc_update(s, p, c, x[3], x[4], x[5], trusts[0], trusts[2])
-        skip = (x[3] == 0.0) & (x[4] == 0.0) & (x[5] == 0.0)  # the batch loop skips [0 0 0], as VQF
-        s = [a if a is b else torch.where(skip, b, a) for a, b in zip(s, old)]
-        if self.use_mag:
-            old = list(s)
-            T.mag_update(s, p, c, x[6], x[7], x[8], trusts[1])
-            skip = (x[6] == 0.0) & (x[7] == 0.0) & (x[8] == 0.0)
-            s = [a if a is b else torch.where(skip, b, a) for a, b in zip(s, old)]
-            w, qx, qy, qz = T.quat9(s)
-        else:
-            w, qx, qy, qz = T.quat6(s)
-        out = torch.stack(list(T.qmul(m_conj[0], m_conj[1], m_conj[2], m_conj[3], w, qx, qy, qz)))
+        s, m_conj = torch.cond(t < 0.5, self._start, self._carry, (state, x))   # (operands may not alias)
+        # one backbone step (BackboneGraph: the kernel's step on vectors; [0 0 0] readings skipped, as VQF)
+        skip_acc = (x[3:6] == 0.0).all()
+        mag = x[6:9] if self.use_mag else x[3:6]
+        skip_mag = (mag == 0.0).all()
+        # the coefficients of dt, kept in the state: recomputed only when dt changes (ONNX If)
+        coeff = torch.cond(self._part(state, "coeff")[0] == dt, self._coeff_kept, self._coeff_new, (state, dt))
+        s = bb(s, g, x[3:6], mag, dt, trusts[0], trusts[1], trusts[2], skip_acc, skip_mag, coeff)
+        out = bb.mul(m_conj, bb.quat(s))
         out = torch.where(out[0] < 0.0, -out, out)  # w >= 0 representative
-        bias = torch.stack([s[K.S_BIAS], s[K.S_BIAS + 1], s[K.S_BIAS + 2]])
-        omega = g - bias
-        new_state = torch.cat([(t + 1.0).reshape(1), self._part(state, "q0"), torch.stack(m_conj),
-                               torch.stack([torch.as_tensor(e, dtype=F64) for e in s])]
+        omega = g - s[K.S_BIAS:K.S_BIAS + 3]
+        new_state = torch.cat([(t + 1.0).reshape(1), self._part(state, "q0"), m_conj, s, coeff]
                               + [r.to(F64).reshape(-1) for r in rings])
         return out, omega, new_state
 
