@@ -263,7 +263,29 @@ def _our_runtimes(model, ckpt, imu, dt, q0, n, warm, slow, tmp: Path, p) -> List
                 rows.append(dict(_graph_step(ckpt, fmt, imu, dt, q0, steps, tmp / f"m_{fmt}"), name=label))
             except Exception as e:  # noqa: BLE001 - the [deploy] extra missing
                 rows.append(_skipped(label, e))
+    if p.get("aoti", True):
+        label = "torch.export step compiled by AOTInductor (aoti_compile_and_package)"
+        try:
+            rows.append(dict(_aoti_step(ckpt, imu, dt, q0, slow, tmp / "m_aoti"), name=label))
+        except Exception as e:  # noqa: BLE001 - no C++ compiler: the row says why
+            rows.append(_skipped(label, e))
     return rows
+
+
+def _aoti_step(path, imu, dt, q0, steps: int, out: Path) -> Dict[str, Any]:
+    """The exported step program compiled ahead of time by AOTInductor (what a PyTorch deployment
+    of the ``.pt2`` runs instead of its eager graph), stepped through the same streaming contract
+    as the loaders (inputs checked, the state carried)."""
+    from ..export.program import ExportedStreaming, export_program
+
+    written = export_program(str(path), str(out) + ".pt2", "streaming", overwrite=True)
+    s = ExportedStreaming(written["streaming"])
+    ep = torch.export.load(written["streaming"])
+    compiled = torch._inductor.aoti_load_package(
+        torch._inductor.aoti_compile_and_package(ep, package_path=str(out) + "_aoti.pt2"))
+    s.program = compiled
+    s.reset(q0)
+    return _steps("aoti", lambda k: s.step(imu[k], dt), steps, 5)
 
 
 def _vqf_batch_loop(imu, dt: float) -> Dict[str, Any]:

@@ -86,6 +86,7 @@ class SpeedDeploy:
     c: bool = True                # the C runtime (needs a C compiler)
     onnx: bool = True             # needs the [deploy] extra
     export: bool = True           # torch.export (slow: ~10 ms a step)
+    aoti: bool = True             # the torch.export step compiled by AOTInductor (~40 s; a C++ compiler)
     footprint_glob: str = "checkpoints/*.ckpt,checkpoints/residual/*.ckpt"  # comma-separated globs
     # more checkpoints whose C loop is timed in the same run, beside VQF's C++ loop of the same
     # axes: networks on (residual/oxiod9: ckpt's broad9 runs as the backbone alone, its networks off) and small
@@ -114,6 +115,6 @@ SPEED_QUICK: Dict[str, Any] = {
     "inference": {"samples": 600, "warmup": 1, "repeats": 2},
     "streaming": {"axes": [9], "samples": 100, "warmup": 10, "chunk": 10},
     "filters": {"samples": 200, "batches": [1, 4]},
-    "deploy": {"samples": 50, "warmup": 5, "slow_steps": 5, "onnx": False, "export": False,
+    "deploy": {"samples": 50, "warmup": 5, "slow_steps": 5, "onnx": False, "export": False, "aoti": False,
                "footprint_glob": "checkpoints/broad9.ckpt"},
 }
