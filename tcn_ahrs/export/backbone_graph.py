@@ -1,12 +1,13 @@
 """The backbone's step (:mod:`tcn_ahrs.kernels.backbone`) on vectors, for the exported step graphs
 (ONNX, ``torch.export``): the same state, coefficients and decisions, written with as few graph
-nodes as the equations allow, because ONNX Runtime pays per node (~0.5 µs each on small float64
-tensors), not per flop. The kernel read on scalars was ~2,400 ONNX nodes a sample; this reading
-is ~600 (broad9's whole step with its networks: 2,672 -> 794 nodes).
+nodes as the equations allow, because ONNX Runtime pays per node (~1 µs each on small float64
+tensors here, whatever the op), not per flop. The kernel read on scalars was ~2,400 ONNX nodes a
+sample; this reading is ~570 (broad9's whole step with its networks: 2,672 -> 707 nodes, its
+start and its coefficients as branches of their own: :class:`tcn_ahrs.export.stateless.ResidualStep`).
 
 What changes is the reading, not the filter (tests/test_backbone_graph.py holds the state after
-every sample equal to the kernel's torch reading to 1e-12, with rest, gaps, a frozen and a
-clipped sensor, magnetic disturbances and skipped samples):
+every sample equal to the kernel's to 1e-10 relative, 5e-12 measured, with rest, gaps, a frozen
+and a clipped sensor, the magnetometer's rejection cycle and skipped samples):
 
 * the attitude quaternions are vectors; the Hamilton product and the rotation matrix are
   contractions with the constant tensors of :mod:`tcn_ahrs.export.classical_step` (read off
@@ -42,6 +43,7 @@ N_COEFF_GRAPH = 22   # BackboneGraph.coefficients: dt, 3 x 5 low-pass rows, 2 ga
 # the low-pass coefficient rows (b0, b1, b2, a1, a2) this graph computes from dt, by filter kind
 _ACC, _REST, _MAG = 0, 1, 2
 
+
 class BackboneGraph(nn.Module):
     """One backbone step on a flat state (``kernels/backbone_layout.STATE``)::
 
@@ -50,8 +52,7 @@ class BackboneGraph(nn.Module):
 
     float64; gyro the rate fed to the filter (rad/s, body), acc the specific force (m/s²), mag
     the field (µT; any (3,) without a magnetometer); ``skip_*``: that reading is [0 0 0] (its
-    update is not applied). ``quat(s)``:
-    the output attitude (6D or 9D), nav_from_body. ``ops``: the table whose tan and atan2 the
+    update is not applied). ``quat(s)``: the output attitude (6D or 9D), nav_from_body. ``ops``: the table whose tan and atan2 the
     graph uses (:func:`tcn_ahrs.export.stateless.onnx_ops` for ONNX Runtime)."""
 
     def __init__(self, params: Sequence[float], use_mag: bool, ops):
@@ -98,7 +99,6 @@ class BackboneGraph(nn.Module):
         cof = [[[(3 * nxt[i] + nxt[j], 3 * nxt[nxt[i]] + nxt[nxt[j]], 3 * nxt[i] + nxt[nxt[j]],
                   3 * nxt[nxt[i]] + nxt[j])[q] for j in range(3)] for i in range(3)] for q in range(4)]
         self.register_buffer("cof", torch.tensor(cof))
-        self.register_buffer("z_up", torch.tensor([0.0, 0.0, 1.0], dtype=F64))
         # [c, s] -> [c, 0, 0, s] (a turn about up), [c, x, y] -> [c, x, y, 0] (about a horizontal axis)
         self.register_buffer("mag_axis", torch.tensor([[1.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 1.0]], dtype=F64))
         self.register_buffer("acc_axes", torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0],
@@ -168,10 +168,10 @@ class BackboneGraph(nn.Module):
         """The rotation matrix (3, 3) of a unit quaternion q (4,) (q v q* = R v)."""
         return (self.matrix @ (q[:, None] * q[None, :]).reshape(16)).reshape(3, 3)
 
-    def coefficients(self, dt: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
-        """(low-pass rows (3, 5) for the acc / rest / mag filters, [k_mag, k_mag_ref] (2,), the
-        bias filter's [V, W_motion, W_vertical, W_rest] (4,)) at step dt: ``coefficients`` of the
-        kernel (VQF's filterCoeffs and gains)."""
+    def coefficients(self, dt: Tensor) -> Tensor:
+        """(N_COEFF_GRAPH,) at step dt, the kernel's ``coefficients`` (VQF's filterCoeffs and
+        gains): [dt, the low-pass rows (3, 5) of the acc / rest / mag filters as b0, b1, b2, -a1,
+        -a2, k_mag, k_mag_ref, the bias filter's V, W_motion, W_vertical, W_rest]."""
         p, T = self.p, self.T
         cc = T.tan(self.fc_pi * dt)
         d = cc * cc + math.sqrt(2.0) * cc + 1.0
