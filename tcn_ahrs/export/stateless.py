@@ -102,7 +102,6 @@ class ResidualStep(nn.Module):
         self.trust_max, self.trust_weight = float(rs.trust_max), float(rs.trust_weight_knob)
         self.trust_scales = [float(v) for v in rs.trust_scales]
         self.bias_trust_power = float(rs.bias_trust_power)
-        self.params = [float(v) for v in rs.params]
         # the backbone's state at the start around its attitude: the initial state with the bias prior
         init = torch.tensor(rs.initial_state, dtype=F64)
         init[K.S_BIAS:K.S_BIAS + 3] = torch.tensor(rs.bias0, dtype=F64)
