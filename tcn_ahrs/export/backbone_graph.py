@@ -34,7 +34,7 @@ from torch import Tensor, nn
 
 from ..kernels import backbone as K
 from ..kernels.backbone_layout import BackboneParams
-from .classical_step import hamilton, rotation_rows
+from .classical_step import hamilton, quat_product, rotation_matrix, rotation_rows
 from .graph_state import HEALTH_INDEX, MAG_SCALARS, Writes, filter_index, plan_buffers
 
 F64 = torch.float64
@@ -52,8 +52,9 @@ class BackboneGraph(nn.Module):
 
     float64; gyro the rate fed to the filter (rad/s, body), acc the specific force (m/s²), mag
     the field (µT; any (3,) without a magnetometer); ``skip_*``: that reading is [0 0 0] (its
-    update is not applied). ``quat(s)``: the output attitude (6D or 9D), nav_from_body. ``ops``: the table whose tan and atan2 the
-    graph uses (:func:`tcn_ahrs.export.stateless.onnx_ops` for ONNX Runtime)."""
+    update is not applied). ``quat(s)``: the output attitude (6D or 9D), nav_from_body. ``ops``:
+    the table whose tan and atan2 the graph uses (:func:`tcn_ahrs.export.stateless.onnx_ops` for
+    ONNX Runtime)."""
 
     def __init__(self, params: Sequence[float], use_mag: bool, ops):
         super().__init__()
@@ -161,12 +162,12 @@ class BackboneGraph(nn.Module):
         return getattr(self, self._lp[call][key])
 
     def mul(self, p: Tensor, q: Tensor) -> Tensor:
-        """p ⊗ q (4,): two products with the constant Hamilton tensor."""
-        return (self.ham @ p).reshape(4, 4) @ q
+        """p ⊗ q (4,)."""
+        return quat_product(self.ham, p, q)
 
     def rot(self, q: Tensor) -> Tensor:
         """The rotation matrix (3, 3) of a unit quaternion q (4,) (q v q* = R v)."""
-        return (self.matrix @ (q[:, None] * q[None, :]).reshape(16)).reshape(3, 3)
+        return rotation_matrix(self.matrix, q)
 
     def coefficients(self, dt: Tensor) -> Tensor:
         """(N_COEFF_GRAPH,) at step dt, the kernel's ``coefficients`` (VQF's filterCoeffs and

@@ -64,6 +64,27 @@ def rotation_rows(rows=(2, 0)) -> Tensor:
     return torch.cat([t[r + 1, 1:4].reshape(3, 16) for r in rows], 0)
 
 
+def quat_product(ham: Tensor, p: Tensor, q: Tensor) -> Tensor:
+    """p ⊗ q (4,) as two products with ``ham`` = ``hamilton().permute(0, 2, 1).reshape(16, 4)``."""
+    return (ham @ p).reshape(4, 4) @ q
+
+
+def rotation_matrix(matrix: Tensor, q: Tensor) -> Tensor:
+    """R (3, 3) of a unit q (4,) (q v q* = R v) with ``matrix`` = ``rotation_rows((0, 1, 2))``."""
+    return (matrix @ (q[:, None] * q[None, :]).reshape(16)).reshape(3, 3)
+
+
+def magnetic_start(ham: Tensor, matrix: Tensor, about_up: Tensor, q0: Tensor, mag: Tensor, atan2
+                   ) -> Tuple[Tensor, Tensor]:
+    """9 axes, the first sample: the start in the magnetic frame of its field, as
+    :func:`~tcn_ahrs.filters.common.magnetic_from_nav` -> (mq ⊗ q0, mq = [cos h, 0, 0, sin h]) with
+    h = (π/2 − the heading of R(q0) m) / 2; ``about_up`` (4, 2) maps [c, s] to [c, 0, 0, s]."""
+    v = rotation_matrix(matrix, q0) @ mag
+    h = 0.5 * (0.5 * math.pi - atan2(v[1], v[0]))
+    mq = about_up @ torch.stack([torch.cos(h), torch.sin(h)])
+    return quat_product(ham, mq, q0), mq
+
+
 class ECFStep(nn.Module):
     """The step graph of an ECF estimator file's contents (``doc``: family, axes, knobs,
     calibration; :func:`~tcn_ahrs.estimators.families.read_estimator`). ``onnx``: float64 atan2
@@ -108,8 +129,7 @@ class ECFStep(nn.Module):
                           torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64), torch.zeros(5, dtype=F64)])
 
     def _mul(self, p: Tensor, q: Tensor) -> Tensor:
-        """p ⊗ q as two matrix products with the constant Hamilton tensor."""
-        return (self.ham @ p).reshape(4, 4) @ q
+        return quat_product(self.ham, p, q)
 
     def forward(self, sample: Tensor, dt: Tensor, state: Tensor) -> Tuple[Tensor, Tensor, Tensor]:
         k = self.knobs
@@ -123,10 +143,7 @@ class ECFStep(nn.Module):
         q_start = q0
         if self.axes == 9:
             mag = x[6:9]
-            v = (self.matrix @ (q0[:, None] * q0[None, :]).reshape(16)).reshape(3, 3) @ mag   # R(q0) m
-            h = 0.5 * (0.5 * math.pi - self.atan2(v[1], v[0]))
-            mq = self.about_up @ torch.stack([torch.cos(h), torch.sin(h)])   # [cos h, 0, 0, sin h]
-            q_start = self._mul(mq, q0)
+            q_start, mq = magnetic_start(self.ham, self.matrix, self.about_up, q0, mag, self.atan2)
             m_conj = torch.where(first, mq * self.conj, m_conj)
         # Eqs. 5-8: the unit specific force, the gates, the scheduled gain
         t = state[13:14].reshape(()) + dt

@@ -43,6 +43,7 @@ from ..kernels import backbone as K
 from ..conventions import INPUT_LIMITS, MAX_DT
 from ..kernels.ops import torch_ops
 from .backbone_graph import N_COEFF_GRAPH, BackboneGraph
+from .classical_step import magnetic_start
 from .fused import gelu_scaled
 
 F64 = torch.float64
@@ -165,10 +166,7 @@ class ResidualStep(nn.Module):
         bb = self.backbone
         q, m_conj = self._part(state, "q0"), self._part(state, "m_conj")
         if self.use_mag:
-            v = bb.rot(q) @ x[6:9]
-            hh = 0.5 * (0.5 * math.pi - self.ops.atan2(v[1], v[0]))
-            mq = bb.mag_axis @ torch.stack([torch.cos(hh), torch.sin(hh)])     # [cos h, 0, 0, sin h]
-            q = bb.mul(mq, q)
+            q, mq = magnetic_start(bb.ham, bb.matrix, bb.mag_axis, q, x[6:9], self.ops.atan2)
             m_conj = mq * self.conj
         else:
             m_conj = m_conj.clone()
