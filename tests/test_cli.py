@@ -90,6 +90,12 @@ def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
     assert run.returncode == 0, run.stderr[-2000:]
     results = json.loads((out / "results.json").read_text())
     assert results, "evaluate wrote no results"
+    # the default (no ckpt=) needs no file of the checkout: the backbone with VQF's defaults
+    run = subprocess.run([str(site / "bin" / "tcn-ahrs"), "evaluate", "data=simulated", "data.split=test",
+                          f"out={work / 'default'}", "plots=false", "trajectories=false"],
+                         cwd=work, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "Backbone (default)" in json.loads((work / "default" / "results.json").read_text())["methods"]
 
 
 def test_a_rerun_child_takes_its_command_from_the_environment(monkeypatch, capsys):

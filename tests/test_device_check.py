@@ -76,10 +76,11 @@ def test_handheld_tum_vi_never_rests_and_euroc_reads_its_bias():
     assert corrected < 3.0 < 50.0 < raw
 
 
-def test_evaluate_with_the_general_model_checks_the_device_first(tmp_path):
-    """``tcn-ahrs evaluate`` with no ckpt (the general model) on a 6-axis device with a 5 °/s gyro bias:
-    the check is printed per recording and every method runs on the corrected readings (without
-    it VQF is far off: the bias is beyond its clip)."""
+def test_evaluate_without_a_checkpoint_checks_the_device_first(tmp_path):
+    """``tcn-ahrs evaluate`` with no ckpt (the default: the backbone with VQF's defaults) and with
+    ``ckpt=general6`` (a named general model) on a 6-axis device with a 5 °/s gyro bias: the check
+    is printed per recording and every method runs on the corrected readings (without it VQF and
+    the backbone are far off: the bias is beyond their clip)."""
     import json
     import subprocess
     import sys
@@ -91,19 +92,25 @@ def test_evaluate_with_the_general_model_checks_the_device_first(tmp_path):
                np.column_stack([seq.time, seq.gyro, seq.accel, seq.quat]), delimiter=",", comments="",
                fmt="%.10g", header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,quat_w,quat_x,quat_y,quat_z")
     aae = {}
-    for mode in ("auto", "false"):
-        out = tmp_path / mode
-        r = subprocess.run([sys.executable, "scripts/evaluate.py", "data=generic", f"data.root={tmp_path / 'data'}", "data.axes=6",
-                            "data.split=all", f"out={out}", f"hydra.run.dir={out}", "plots=false",
-                            "trajectories=false", f"device_check={mode}", "baselines=[vqf]"],
-                           cwd=repo, capture_output=True, text=True, timeout=300)
-        assert r.returncode == 0, r.stderr
-        assert ("device check, biased: rests" in r.stdout) == (mode == "auto")
-        res = json.loads((out / "results.json").read_text())["methods"]
-        aae[mode] = {m: v["recordings"][0]["aae_deg"] for m, v in res.items()}
+    for ckpt in ([], ["ckpt=general6"]):
+        for mode in ("auto", "false"):
+            out = tmp_path / f"{mode}{len(ckpt)}"
+            r = subprocess.run([sys.executable, "scripts/evaluate.py", "data=generic", f"data.root={tmp_path / 'data'}",
+                                "data.axes=6", "data.split=all", f"out={out}", f"hydra.run.dir={out}", "plots=false",
+                                "trajectories=false", f"device_check={mode}", "baselines=[vqf]", *ckpt],
+                               cwd=repo, capture_output=True, text=True, timeout=300)
+            assert r.returncode == 0, r.stderr
+            assert ("device check, biased: rests" in r.stdout) == (mode == "auto")
+            assert ("no ckpt given: the backbone with VQF's defaults" in r.stdout) == (not ckpt)
+            res = json.loads((out / "results.json").read_text())["methods"]
+            aae[mode + str(len(ckpt))] = {m: v["recordings"][0]["aae_deg"] for m, v in res.items()}
+    # the default is the backbone with VQF's defaults: VQF's numbers to round-off, on either input
+    for mode in ("auto0", "false0"):
+        assert aae[mode]["Backbone (default)"] == pytest.approx(aae[mode]["vqf6d"], rel=1e-3), aae
     # measured: general6 1.46 -> 1.07 (its 8 °/s bias clip already held the bias), VQF 18.3 -> 1.07
-    assert aae["auto"]["Learned AHRS"] < 0.8 * aae["false"]["Learned AHRS"], aae
-    assert aae["auto"]["vqf6d"] < 0.2 * aae["false"]["vqf6d"], aae
+    assert aae["auto1"]["Learned AHRS"] < 0.8 * aae["false1"]["Learned AHRS"], aae
+    assert aae["auto0"]["vqf6d"] < 0.2 * aae["false0"]["vqf6d"], aae
+    assert aae["auto0"]["Backbone (default)"] < 0.2 * aae["false0"]["Backbone (default)"], aae
 
 
 @pytest.mark.parametrize("flagged", [True, False])

@@ -111,8 +111,8 @@ def test_own_device_command_on_generic_recordings(tmp_path, capsys):
     root = _generic_root(tmp_path)
     out = tmp_path / "search"
     main(["search", "data=generic", f"data.root={root}", "search.trials=2", "search.seeds=[0]",
-          "search.families=[strapdown,madgwick]", "search.calibrations=[none,gyro_bias]", f"search.out={out}",
-          f"hydra.run.dir={tmp_path / 'hydra'}"])
+          "search.families=[strapdown,madgwick]", "search.calibrations=[none,gyro_bias]", "search.learn=[]",
+          f"search.out={out}", f"hydra.run.dir={tmp_path / 'hydra'}"])
     res = json.loads((out / "search.json").read_text())
     assert [r["fold"] for r in res["rows"]] == [0, 1, 2]
     printed = capsys.readouterr().out
@@ -156,7 +156,7 @@ def test_two_job_search_through_the_joblib_launcher(tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     root = _generic_root(tmp_path)
     common = ["data=generic", f"data.root={root}", "search.trials=2", "search.seeds=[0]",
-              "search.families=[strapdown,madgwick]", "search.calibrations=[none]"]
+              "search.families=[strapdown,madgwick]", "search.calibrations=[none]", "search.learn=[]"]
     out = tmp_path / "parallel"
     main(["search", "-m", *common, f"search.out={out}", "search.folds=[0],[1]", "hydra/launcher=joblib",
           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={tmp_path / 'sweep'}"])
@@ -201,3 +201,132 @@ def test_released_estimator_file_runs_in_evaluate_and_export_refuses_it(tmp_path
                             "rate": None, "overwrite": False})
     with pytest.raises(ValueError, match="classical estimator chosen by tcn-ahrs search"):
         export_main(cfg)
+
+
+def test_a_learned_gain_must_stand_above_its_spread():
+    """search.learn: a learned candidate replaces the classical choice only when its mean gain over
+    the validation recordings exceeds the tie margin plus one standard error of the paired gains."""
+    from tcn_ahrs.experiments.search.learn import gain_supported
+
+    assert gain_supported([2.0, 2.0, 2.0], [1.5, 1.6, 1.4], 0.02)[0]  # 0.5 deg better on each
+    # better on the mean (1.33 vs 2.0) only through one recording: the spread does not support it
+    ok, why = gain_supported([2.0, 2.0, 2.0], [0.1, 2.1, 2.0], 0.02)
+    assert not ok and "standard error" in why
+    assert not gain_supported([2.0, 2.0], [1.99, 1.98], 0.02)[0]  # inside the 2 % tie margin
+    assert not gain_supported([2.0], [0.5], 0.02)[0]  # one recording: no spread, no adoption
+    assert not gain_supported([2.0, 2.0], [1.0, float("inf")], 0.02)[0]
+    with pytest.raises(ValueError):
+        gain_supported([2.0, 2.0], [1.0], 0.02)
+
+
+def test_the_fold_choice_reads_the_learned_gain_recording_by_recording():
+    def rec(learned_recs):
+        inner = {"ecf (defaults)": [[2.0, 1.0]], "closed_loop": [[float(np.mean(learned_recs)), 1.0]]}
+        r = _record(0, 0, inner)
+        r["candidates"]["ecf (defaults)"]["inner_val_recordings"] = [[2.0, 2.0, 2.0]]
+        r["candidates"]["closed_loop"]["inner_val_recordings"] = [learned_recs]
+        return r
+
+    assert search.fold_choice([rec([1.5, 1.6, 1.4])], 0.02, 0.05) == "closed_loop"
+    assert search.fold_choice([rec([0.1, 2.1, 2.0])], 0.02, 0.05) == "ecf (defaults)"
+    # over seeds the per-recording scores are averaged first (here: 1.45, 1.8, 1.65 -> supported)
+    assert search.fold_choice([rec([1.4, 1.6, 1.4]), rec([1.5, 2.0, 1.9])], 0.02, 0.05) == "closed_loop"
+
+
+def test_the_budget_is_shared_among_the_trainings():
+    from tcn_ahrs.experiments.search.learn import share_minutes
+    from tcn_ahrs.experiments.search.progress import CLASSICAL_SHARE, Budget
+
+    assert share_minutes(None, 0.0, 3) is None
+    assert share_minutes(10.0, 2.0, 4, 2.0) == pytest.approx(1.5)
+    assert share_minutes(10.0, 12.0, 2) == 0.5  # over budget: the floor (and the overrun is said)
+    b = Budget(12.0, n_trainings=4, n_folds=3)
+    with b.training() as first:
+        assert first == pytest.approx((12.0 - CLASSICAL_SHARE * 12.0) / 4, rel=1e-3)
+    assert b.trainings_left == 3
+    b.fold_done()
+    assert b.folds_left == 2 and len(b.classical_per_fold) == 1
+    assert Budget(None, 2, 2).overrun() is None
+    assert "budget 12 min" in b.describe(1) and "none" in Budget(5.0, 0, 3).describe(0)
+
+
+def test_the_expected_gain_over_the_best_classical_filter():
+    from tcn_ahrs.experiments.search.report import expected_gain
+
+    rows = [{"aae_deg": a, "best_classical_aae_deg": 2.0} for a in (1.0, 1.5, 2.5)]
+    g = expected_gain(rows)
+    assert g["mean"] == pytest.approx(np.mean([0.5, 0.25, -0.25])) and g["n"] == 3
+    assert "17% better" in g["sentence"] and "worst -25%" in g["sentence"]
+    assert "worse" in expected_gain([{"aae_deg": 3.0, "best_classical_aae_deg": 2.0}])["sentence"]
+
+
+def test_the_search_trains_a_learned_candidate_in_its_folds_and_resumes(tmp_path, capsys):
+    """`tcn-ahrs search ... search.learn=[finetune]`: the recipe trained in every outer fold on the
+    inner training recordings (never the outer fold's), compared recording by recording on the inner
+    validation ones, scored on the outer fold beside the classical candidates; one progress bar and a
+    summary with the expected gain; a second run reuses every training."""
+    import json
+
+    from tcn_ahrs.cli import main
+
+    root = _generic_root(tmp_path)
+    out = tmp_path / "search"
+    args = ["search", "data=generic", f"data.root={root}", "search.trials=2", "search.seeds=[0]",
+            "search.families=[strapdown,madgwick]", "search.calibrations=[none]", "search.learn=[finetune]",
+            "search.budget_minutes=6", f"search.out={out}", f"hydra.run.dir={tmp_path / 'hydra'}"]
+    main(args)
+    printed = capsys.readouterr().out
+    res = json.loads((out / "search.json").read_text())
+    name = "residual (fine-tuned general)"
+    for rec in res["folds"]:
+        c = rec["candidates"][name]
+        assert c["calibration"] == "learned" and len(c["inner_val_recordings"][0]) >= 1
+        assert rec["test"][name]["aae_deg"] > 0  # scored on the outer fold like every candidate
+        run = out / "learn" / f"fold{rec['fold']}" / "finetune"
+        cfg = (run / "config_resolved.yaml").read_text()
+        assert (run / "TRAINED").is_file()
+        line = next(x for x in printed.splitlines() if f"fold {rec['fold']}: training {name} on" in x)
+        trained_on = line.split(" on ", 1)[1].split(", validated on")[0]
+        assert not any(r in trained_on for r in rec["recordings"])  # the outer fold's recordings train nothing
+        assert "max_time: 00:00:" in cfg  # the budget's cap
+    assert "trained in each of 3 outer folds" in printed and "budget 6 min" in printed
+    assert "[search 100%" in printed  # the bar (a line per 10 % where stderr is no terminal)
+    assert "== search summary" in printed and "expected on new recordings of this device:" in printed
+    assert res["expected_gain"]["n"] == 3
+    stamps = {p: p.stat().st_mtime for p in out.glob("learn/fold*/finetune/TRAINED")}
+    main(args)  # resumed: records and trainings read, nothing trained again
+    again = json.loads((out / "search.json").read_text())
+    assert {p: p.stat().st_mtime for p in out.glob("learn/fold*/finetune/TRAINED")} == stamps
+    assert [r["aae_deg"] for r in again["rows"]] == [r["aae_deg"] for r in res["rows"]]
+
+
+def test_a_learned_release_is_a_checkpoint_with_its_card_that_evaluate_runs(tmp_path):
+    """A learned candidate chosen on most folds: its recipe trained on every recording but the last
+    fold's (which chooses its knobs), written atomically as release.ckpt with release.md; `tcn-ahrs
+    evaluate ckpt=release.ckpt` runs it and it exports."""
+    import json
+
+    from omegaconf import OmegaConf
+
+    from tcn_ahrs.cli import main
+    from tcn_ahrs.experiments.search import release_learned
+
+    root = _generic_root(tmp_path)
+    cfg = OmegaConf.create({"data": {"name": "generic", "root": str(root), "axes": 9}})
+    name = "residual (fine-tuned general)"
+    rows = [{"fold": f, "seed": 0, "chosen": name, "aae_deg": 1.0, "best_classical_aae_deg": 1.2} for f in range(3)]
+    from tcn_ahrs.datasets import load_split
+
+    every = [s for s in load_split({"name": "generic", "root": str(root), "split": "all", "axes": 9}, "all")]
+    folds = [["rec0"], ["rec1"], ["rec2"]]
+    info = release_learned(cfg, {"rows": rows}, tmp_path / "out", name, {"checkpoint": None}, every, folds, 9, None)
+    assert info["trained_on"] == ["rec0", "rec1"] and info["validated_on"] == ["rec2"]
+    card = (tmp_path / "out" / "release.md").read_text()
+    assert "17% better than the best classical filter" in card and "3 of 3 outer fold" in card
+    assert not list((tmp_path / "out").glob("*.partial"))
+    main(["evaluate", "data=generic", f"data.root={root}", "data.split=all", f"ckpt={info['path']}",
+          f"out={tmp_path / 'ev'}", "plots=false", "trajectories=false", f"hydra.run.dir={tmp_path / 'h'}"])
+    res = json.loads((tmp_path / "ev" / "results.json").read_text())
+    assert res["methods"]["Learned AHRS"]["mean"]["aae_deg"] > 0
+    main(["export", f"ckpt={info['path']}", f"out={tmp_path / 'm.onnx'}", "format=onnx"])
+    assert (tmp_path / "m_streaming.onnx").is_file() or list(tmp_path.glob("m*.onnx"))

@@ -10,7 +10,7 @@ from typing import Any, Dict, List, Optional
 class EvaluateConfig:
     """conf/evaluate.yaml: a checkpoint (+ Raw IMU and ``baselines``) through the runner."""
     run_dir: Optional[str] = None   # a training run: write into its eval/ subfolder
-    ckpt: Optional[str] = None      # null: checkpoints/general9.ckpt (general6 for data.axes=6)
+    ckpt: Optional[str] = None      # null: the backbone with VQF's defaults (device-checked); general9 etc.: shipped by name
     out: Optional[str] = None       # null: Hydra's run dir runs/eval/<date_time>
     overwrite: bool = False         # an out= holding an earlier run's files is refused unless true
     baselines: List[str] = field(default_factory=list)

@@ -127,6 +127,9 @@ class SearchSection:
     inner: str = "auto"                # inner validation: folds (every other fold in turn) | fold | split | auto
     families: List[str] = field(default_factory=lambda: ["strapdown", "ecf", "mahony", "madgwick", "backbone"])
     calibrations: List[str] = field(default_factory=lambda: ["none", "gyro_bias", "full"])
+    learn: List[str] = field(default_factory=lambda: ["finetune", "residual", "closed_loop"])  # learned recipes
+                                       # trained inside the folds (tcn_ahrs.experiments.search.learn.RECIPES)
+    budget_minutes: Optional[float] = 60.0  # the whole search's compute; the trainings share what the classical part leaves
     learned: Optional[Dict[str, str]] = None  # {family: crossval folder}: its fold checkpoints are candidates
     learned_checkpoint: str = "last"   # last (end of schedule: unbiased on the inner fold) | selected
     trials: int = 40                   # Optuna trials per family x calibration and fold (the defaults first)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Dict, Optional, Sequence, Tuple
+from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -105,9 +105,9 @@ class Calibrated:
         return self.inner.run(seq if self.cal is None else self.cal.apply(seq), init_quat, init_index)
 
 
-def mean_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[float, float]:
-    """(mean AAE, mean inclination) of ``est`` over ``seqs`` with the one yardstick; inf if it
-    diverges anywhere."""
+def recording_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[List[float], List[float]]:
+    """(AAE per recording, inclination per recording) of ``est`` over ``seqs`` with the one
+    yardstick; every entry inf if it diverges anywhere."""
     aae, incl = [], []
     for s in seqs:
         view = s.without_mag() if (axes == 6 and s.has_mag) else s
@@ -117,15 +117,20 @@ def mean_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[float, flo
         except (FloatingPointError, ZeroDivisionError, np.linalg.LinAlgError, ValueError):
             # a knob point the filter cannot run with (e.g. the backbone's numba kernel dividing by
             # zero on OxIOD at tau_acc 1.06 s, rest_th_acc 0.2): scored as diverged, never chosen
-            return math.inf, math.inf
+            return [math.inf] * len(seqs), [math.inf] * len(seqs)
         if not np.all(np.isfinite(q)):
-            return math.inf, math.inf
+            return [math.inf] * len(seqs), [math.inf] * len(seqs)
         a, i = aae_and_inclination(s, q, view.num_axes)
-        aae.append(a)
-        incl.append(i)
+        aae.append(float(a))
+        incl.append(float(i))
+    return aae, incl
+
+
+def mean_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[float, float]:
+    """(mean AAE, mean inclination) of ``est`` over ``seqs`` (:func:`recording_scores`); inf if it
+    diverges anywhere."""
+    aae, incl = recording_scores(est, seqs, axes)
     return float(np.mean(aae)), float(np.mean(incl))
-
-
 
 
 # ------------------------------------------------------------------------------ the released file

@@ -5,7 +5,7 @@ from pathlib import Path
 from typing import Any, Dict
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
 from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
 from ..config import EvaluateConfig, keys
@@ -39,17 +39,12 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
 
     check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
     set_threads(cfg.get("threads"))
-    general_model = not cfg.get("ckpt")
-    if general_model:
-        # your own recordings without a model of their own: the general model for their axes
-        general = Path(__file__).resolve().parents[2] / "checkpoints" / f"general{int(cfg.data.get('axes', 9))}.ckpt"
-        if not general.is_file():
-            raise ValueError("evaluate: pass ckpt=PATH (a checkpoint written by scripts/train.py)")
-        from omegaconf import open_dict
-
+    default_estimator = not cfg.get("ckpt")
+    if not default_estimator:
         with open_dict(cfg):
-            cfg.ckpt = str(general)
-        print(f"note: no ckpt given: the general model {general} (any IMU, 50-1000 Hz)")
+            cfg.ckpt = shipped(str(cfg.ckpt))
+    # the general models (any IMU) are given device-checked recordings, as they were chosen on
+    general_model = not default_estimator and Path(str(cfg.ckpt)).stem in GENERAL_MODELS
     # run_dir= (a training run): its eval/ subfolder, never the run's own files
     explicit = cfg.get("out") or (str(Path(str(cfg.run_dir)) / "eval") if cfg.get("run_dir") else None)
     out = str(output_dir(explicit, Path("runs") / "evaluate"))
@@ -57,6 +52,12 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     from ..estimators.families import is_estimator_file, load_estimator
 
     axes = int(cfg.data.get("axes", 9))
+    if default_estimator:
+        print("note: no ckpt given: the backbone with VQF's defaults on device-checked recordings (the default: "
+              "no general model is yet never worse than VQF on datasets it never saw); the learned models for "
+              "any IMU are ckpt=general9 / ckpt=general6, your device's own: tcn-ahrs search")
+        name = str(cfg.get("name")) if cfg.get("name") not in (None, _D.name) else DEFAULT_NAME
+        return _run(cfg, default(axes, name), *_recordings(cfg, True), axes, out)
     if is_estimator_file(cfg.ckpt):  # a classical family chosen by tcn-ahrs search
         learned = load_estimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name))
         axes = min(axes, int(learned.axes or axes))
@@ -76,6 +77,39 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
                                device=str(cfg.get("device", _D.device)), reanchor=cfg.get("reanchor"),
                                other_rate=str(cfg.get("other_rate", _D.other_rate)))
     return _run(cfg, learned, seqs, refused, axes, out)
+
+
+DEFAULT_NAME = "Backbone (default)"
+GENERAL_MODELS = ("general6", "general9")
+"""Shipped learned models for any IMU, run by name (``ckpt=general9``): named options, not the
+default, while they are worse than VQF on datasets they never saw (docs/results.md, leave one
+dataset out)."""
+
+
+def default(axes: int, name: str = DEFAULT_NAME):
+    """What ``tcn-ahrs evaluate`` runs without ``ckpt=``: the VQF-grade backbone with VQF's defaults,
+    on device-checked recordings (:func:`_recordings`). No training, no file: the estimator with
+    the evidence that it is never worse than VQF's defaults on every left-out dataset (the same
+    filter; docs/results.md), where no general model has earned it yet."""
+    from ..estimators.families import FAMILIES, Calibrated
+
+    fam = FAMILIES["backbone"]
+    return Calibrated(fam.build(axes, **fam.defaults), None, name=name)
+
+
+def shipped(ckpt: str) -> str:
+    """``ckpt`` as given, or a shipped file named without folder and suffix (``general9``,
+    ``euroc6``, ``tumvi6``): ``checkpoints/<name>.ckpt`` or ``.json`` of the checkout."""
+    if Path(ckpt).exists() or "/" in ckpt or Path(ckpt).suffix:
+        return ckpt
+    folder = Path(__file__).resolve().parents[2] / "checkpoints"
+    for suffix in (".ckpt", ".json"):
+        if (folder / f"{ckpt}{suffix}").is_file():
+            print(f"note: ckpt={ckpt}: the shipped {folder / (ckpt + suffix)}")
+            return str(folder / f"{ckpt}{suffix}")
+    names = sorted(p.stem for p in folder.glob("*.ckpt")) + sorted(p.stem for p in folder.glob("*.json"))
+    raise FileNotFoundError(f"evaluate: ckpt={ckpt}: no such file, nor a shipped model of that name "
+                            f"(shipped: {', '.join(names) or 'none in this install'})")
 
 
 def _recordings(cfg: DictConfig, general_model: bool = False):

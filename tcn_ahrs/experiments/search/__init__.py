@@ -41,7 +41,9 @@ from .choice import best_classical, choose, choose_candidate, fold_choice, relea
 from .fold import (_fit_candidate, _inner_splits, _learned_candidates, auto_folds, candidate_names,  # noqa: F401
                    search_fold, tune_family)
 from .records import RECIPE_KEYS, _read_record, _write_record, multirun_job  # noqa: F401
-from .report import search_markdown, summary_markdown  # noqa: F401
+from .learn import check_recipes, data_overrides, train_fold_candidates
+from .progress import Budget, Progress
+from .report import expected_gain, final_summary, search_markdown, summary_markdown  # noqa: F401
 
 
 def search_main(cfg) -> Dict[str, Any]:
@@ -73,17 +75,21 @@ def search_main(cfg) -> Dict[str, Any]:
     if bad:
         raise ValueError(f"search.calibrations: unknown {bad}; expected some of {list(CALIBRATIONS)}")
     learned_spec = dict(OmegaConf.to_container(sc.learned, resolve=True) or {}) if sc.get("learned") else {}
+    learn = check_recipes(list(sc.get("learn") or []))
     settings = OmegaConf.to_container(sc, resolve=True)
     lighter = skipped(settings, len(folds))
     print("search settings: " + ("; ".join(lighter) if lighter else "the full search (nothing skipped)"), flush=True)
+    seeds = [int(seed) for seed in sc.seeds]
+    budget = Budget(sc.get("budget_minutes"), len(learn) * len(idx) + (1 if learn else 0), len(idx))
+    print(budget.describe(len(learn)), flush=True)
     t_start = time.perf_counter()
     job = multirun_job()
     recipe = {k: settings.get(k) for k in RECIPE_KEYS}
     recipe["folds"] = folds
     records: List[Dict[str, Any]] = []
     read_seconds = 0.0  # the compute time of records an earlier run or another job wrote
+    bar = Progress(len(idx) * (len(seeds) * 2 * len(candidate_names(families, calibs)) + len(learn)), "search")
     for i in idx:
-        seeds = [int(seed) for seed in sc.seeds]
         done = {seed: _read_record(out, i, seed, recipe) for seed in seeds}
         fold_data: Dict[str, Any] = {}
 
@@ -106,19 +112,31 @@ def search_main(cfg) -> Dict[str, Any]:
                 d = data()
                 if learned is None:
                     learned = _learned_candidates(learned_spec, i, str(sc.get("learned_checkpoint") or "last"))
+                    # the learned recipes trained on the inner split crossval's candidates are validated on
+                    tr, va = d["splits"][d["learned_split"]]
+                    learned.update(train_fold_candidates(learn, out, i, tr, va, data_overrides(cfg.data, axes), axes,
+                                                         budget, log=bar.write,
+                                                         progress=lambda name: bar.step(f"fold {i}: {name} trained")))
                 rec = search_fold(i, d["splits"], d["others"], d["test"], axes, families, calibs, int(sc.trials), seed,
                                   storage, learned, d["learned_split"], float(sc.tie_margin), float(sc.incl_margin),
-                                  tune_seconds=sc.get("tune_seconds"))
+                                  tune_seconds=sc.get("tune_seconds"), log=bar.write,
+                                  progress=lambda name, i=i, seed=seed: bar.step(f"fold {i} seed {seed}: {name}"))
                 rec["recipe"] = recipe
                 _write_record(out, rec)
                 done[seed] = rec
+            else:
+                bar.step(f"fold {i} seed {seed}: read", 2 * len(candidate_names(families, calibs)))
             records.append(done[seed])
             if job is None:
                 partial = _result(cfg, records, read_seconds + time.perf_counter() - t_start)
                 (out / "search.json").write_text(json.dumps(partial, indent=1, default=str))
+        if learned is None:  # this fold's trainings were read with its records
+            bar.step(f"fold {i}: learned candidates read", len(learn))
+        budget.fold_done()
         if job is None:
             _save_fold_choice(out, i, [done[seed] for seed in seeds], data, axes, int(sc.trials), storage,
                               float(sc.tie_margin), float(sc.incl_margin), sc.get("tune_seconds"))
+    bar.close()
     if job is not None:
         # one job of a multirun (a fold x seed each): the report and the release come from one
         # plain run over every fold and seed afterwards, which reads these records
@@ -127,15 +145,22 @@ def search_main(cfg) -> Dict[str, Any]:
         return {"records": records}
     result = _result(cfg, records, read_seconds + time.perf_counter() - t_start)
     result["skipped"] = lighter
-    result["release"] = release(cfg, result, out, axes, families, int(sc.trials), storage, sc.get("tune_seconds"))
+    result["release"] = release(cfg, result, out, axes, families, int(sc.trials), storage, sc.get("tune_seconds"),
+                                folds, budget)
+    result["expected_gain"] = expected_gain(result["rows"])
+    result["budget_minutes"] = sc.get("budget_minutes")
+    result["seconds"] = read_seconds + time.perf_counter() - t_start
     (out / "search.json").write_text(json.dumps(result, indent=1, default=str))
     # the per-fold rows alone (what docs/results.md's generated tables read; search.json has every candidate)
     (out / "summary.json").write_text(json.dumps({k: result[k] for k in ("dataset", "axes", "seconds", "rows", "release",
-                                                                        "config", "skipped")}, indent=1, default=str))
+                                                                        "config", "skipped", "expected_gain",
+                                                                        "budget_minutes")}, indent=1, default=str))
     md = search_markdown(result)
     (out / "search.md").write_text(md)
     print(md)
-    print(f"results in {out}")
+    if budget.overrun():
+        print(f"WARNING: {budget.overrun()}")
+    print(final_summary(result, out))
     return result
 
 
@@ -158,8 +183,12 @@ def skipped(sc: Dict[str, Any], n_folds: int) -> List[str]:
             out.append(f"{key} left out: {', '.join(left)}")
     if sc.get("folds") is not None and len(sc["folds"]) < n_folds:
         out.append(f"outer folds {list(sc['folds'])} of {n_folds}")
-    if not sc.get("learned"):
-        out.append("no learned family (search.learned: crossval folders of the learned recipes)")
+    left = [r for r in full.learn if r not in (sc.get("learn") or [])]
+    if left:
+        out.append(f"learned recipes left out: {', '.join(left)}")
+    if sc.get("budget_minutes") is not None and full.budget_minutes is not None \
+            and float(sc["budget_minutes"]) < full.budget_minutes and sc.get("learn"):
+        out.append(f"trainings capped by a {sc['budget_minutes']:g} min budget (full: {full.budget_minutes:g})")
     return out
 
 
@@ -188,32 +217,76 @@ def _save_fold_choice(out: Path, fold: int, records: Sequence[Dict[str, Any]], d
 
 
 def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequence[str], trials: int,
-            storage: Optional[str], tune_seconds: Optional[float]) -> Dict[str, Any]:
-    """The estimator to ship (:func:`release_choice`); a classical one is fitted on every training
-    recording, whole, and written as ``estimator.json`` (``tcn-ahrs evaluate ckpt=.../estimator.json``);
-    a learned one is its recipe trained on every recording (the command is printed)."""
+            storage: Optional[str], tune_seconds: Optional[float], folds: Sequence[Sequence[str]] = (),
+            budget=None) -> Dict[str, Any]:
+    """The estimator to ship (:func:`release_choice`), as a file ``tcn-ahrs evaluate ckpt=FILE`` runs:
+    a classical one fitted on every training recording, whole, as ``estimator.json``; a learned one
+    trained by its recipe in the search's folder (:func:`release_learned`) as ``release.ckpt`` with
+    its model card ``release.md``."""
     from ...datasets import load_split
     from ...estimators.families import save_estimator
 
     name, counts = release_choice(result, float(cfg.search.tie_margin))
     rec = result["folds"][0]["candidates"][name]
     info = {"chosen": name, "times_chosen": counts[name], "runs": len(result["rows"]), "family": rec["family"]}
-    if rec["calibration"] == "learned":
-        info["how"] = (f"a learned family: train its recipe on every training recording "
-                       f"(tcn-ahrs train experiment=<its recipe> train.all_recordings=true); its fold checkpoints: "
-                       f"{rec.get('checkpoint')}")
-        print(f"release: {name} ({counts[name]} of {len(result['rows'])} runs): {info['how']}")
-        return info
     every = [s for s in load_split(cfg.data, "trainval") if s.has_gt]
+    if rec["calibration"] == "learned":
+        info.update(release_learned(cfg, result, out, name, rec, every, folds, axes, budget))
+        print(f"release: {name} ({counts[name]} of {len(result['rows'])} runs): {info.get('path') or info['how']}")
+        return info
     est, knobs = _fit_candidate(rec["family"], rec["calibration"], rec["tuned"], every, axes, trials, 0, storage,
                                 f"release_{rec['family']}_{rec['calibration']}", tune_seconds)
     path = out / "estimator.json"
     save_estimator(path, rec["family"], axes, knobs, est.cal,
                    {"dataset": str(cfg.data.name), "recordings": [s.name for s in every], "chosen": name,
-                    "times_chosen": f"{counts[name]} of {len(result['rows'])}", "command": "tcn-ahrs search"})
+                    "times_chosen": f"{counts[name]} of {len(result['rows'])}", "command": "tcn-ahrs search",
+                    "expected_gain": expected_gain(result["rows"])})
     info.update(path=str(path), knobs=knobs)
     print(f"release: {name} ({counts[name]} of {len(result['rows'])} runs), fitted on {len(every)} recordings: {path}")
     return info
+
+
+def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict[str, Any], every, folds,
+                    axes: int, budget) -> Dict[str, Any]:
+    """A learned release: its recipe (``search.learn``) trained on every recording but the last
+    fold's, which chooses its epoch / inference knobs as in the folds, copied to ``release.ckpt``
+    (atomically) with the card ``release.md``; a ``search.learned`` family (trained by crossval)
+    gets the command that trains it on every recording."""
+    import os
+    import shutil
+
+    from .learn import RECIPES, candidate_name, data_overrides, train_recipe
+
+    recipe = next((r for r in RECIPES if candidate_name(r) == name), None)
+    if recipe is None or not folds:
+        return {"how": (f"a learned family: train its recipe on every training recording "
+                        f"(tcn-ahrs train experiment=<its recipe> train.all_recordings=true); its fold checkpoints: "
+                        f"{rec.get('checkpoint')}")}
+    last = {str(r) for r in folds[-1]}
+    train, val = [s for s in every if s.name not in last], [s for s in every if s.name in last]
+    from contextlib import nullcontext
+
+    with (budget.training() if budget is not None else nullcontext(None)) as minutes:
+        best = train_recipe(recipe, out / "learn" / "release" / recipe, train, val, data_overrides(cfg.data, axes),
+                            axes, minutes)
+    path = out / "release.ckpt"
+    tmp = path.with_name(path.name + ".partial")
+    shutil.copyfile(best, tmp)
+    os.replace(tmp, path)
+    gain = expected_gain(result["rows"])
+    card = "\n".join([
+        f"# release.ckpt: {name} for {cfg.data.name} ({axes}-axis)", "",
+        f"- family: {name}, learned (recipe `{recipe}`: {' '.join(RECIPES[recipe][1]).format(axes=axes)})",
+        f"- trained on {len(train)} recordings ({', '.join(s.name for s in train)}); epoch / inference knobs chosen on "
+        f"{', '.join(s.name for s in val)}",
+        f"- chosen by `tcn-ahrs search` on {sum(r['chosen'] == name for r in result['rows'])} of "
+        f"{len(result['rows'])} outer fold x seed runs (nested, leave-recordings-out)",
+        f"- expected on new recordings of this device: {gain['sentence']}",
+        f"- run it: `tcn-ahrs evaluate ckpt={path} data={cfg.data.name}" +
+        (f" data.root={cfg.data.root}`" if cfg.data.get("root") else "`"), ""])
+    (out / "release.md").write_text(card)
+    return {"path": str(path), "card": str(out / "release.md"), "recipe": recipe,
+            "trained_on": [s.name for s in train], "validated_on": [s.name for s in val]}
 
 
 def _result(cfg, records: List[Dict[str, Any]], seconds: float) -> Dict[str, Any]:

@@ -39,8 +39,10 @@ def choose_candidate(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_m
     """The choice among one fold's candidate records (``inner_val``: a row of (AAE, inclination)
     per inner split; a learned candidate has one row, its ``learned_split``): the classical ones by
     :func:`choose` on their mean over the splits (inclination bar: the best untuned filter's), then
-    a learned one replaces that choice if it is better by more than ``tie_margin`` on the split it
-    was validated on, at an inclination within ``incl_margin``."""
+    a learned one replaces that choice if it is better on the split it was validated on, at an
+    inclination within ``incl_margin``, by more than ``tie_margin`` plus the standard error of its
+    gain over that split's recordings (:func:`tcn_ahrs.experiments.search.learn.gain_supported`;
+    records without per-recording scores: by ``tie_margin``)."""
     classical = {k: v for k, v in cands.items() if v["calibration"] != "learned"}
     mean = {k: np.mean(np.asarray(v["inner_val"], dtype=float), axis=0) for k, v in classical.items()}
     bar_incl = min(float(mean[k][1]) for k, v in classical.items() if not v["tuned"])
@@ -49,9 +51,18 @@ def choose_candidate(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_m
         if v["calibration"] != "learned":
             continue
         # the current choice on the learned split (a learned one has that split's row only)
-        ref = cands[chosen]["inner_val"][0 if cands[chosen]["calibration"] == "learned" else learned_split]
+        row = 0 if cands[chosen]["calibration"] == "learned" else learned_split
+        ref = cands[chosen]["inner_val"][row]
         got = v["inner_val"][0]
-        if got[0] < ref[0] * (1.0 - tie_margin) and got[1] <= ref[1] + incl_margin:
+        if got[1] > ref[1] + incl_margin:
+            continue
+        if "inner_val_recordings" in v and "inner_val_recordings" in cands[chosen]:
+            # the gain must stand above its spread over the validation recordings (learn.gain_supported)
+            from .learn import gain_supported
+
+            if gain_supported(cands[chosen]["inner_val_recordings"][row], v["inner_val_recordings"][0], tie_margin)[0]:
+                chosen = name
+        elif got[0] < ref[0] * (1.0 - tie_margin):  # a record written before per-recording scores
             chosen = name
     return chosen
 
@@ -62,8 +73,13 @@ def fold_choice(records: Sequence[Dict[str, Any]], tie_margin: float, incl_margi
     A choice that flipped with the sampler's seed (EuRoC fold 0: closed loop on one seed, the
     calibrated backbone on two) cannot flip: the fold has one choice, scored for every seed."""
     first = records[0]
-    pooled = {name: dict(c, inner_val=np.mean([np.asarray(r["candidates"][name]["inner_val"], dtype=float)
-                                                for r in records], axis=0).tolist())
+    def mean_over_seeds(name: str, key: str):  # split by split (splits may hold unequal numbers of recordings)
+        rows = [r["candidates"][name][key] for r in records]
+        return [np.mean([np.asarray(r[j], dtype=float) for r in rows], axis=0).tolist() for j in range(len(rows[0]))]
+
+    pooled = {name: dict(c, inner_val=mean_over_seeds(name, "inner_val"),
+                         **({"inner_val_recordings": mean_over_seeds(name, "inner_val_recordings")}
+                            if "inner_val_recordings" in c else {}))
               for name, c in first["candidates"].items()}
     return choose_candidate(pooled, int(first.get("learned_split", 0)), tie_margin, incl_margin)
 

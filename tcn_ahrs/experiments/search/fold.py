@@ -10,7 +10,7 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ... import calibration as cal_mod
-from ...estimators.families import CALIBRATIONS, FAMILIES, Calibrated, Family, mean_scores
+from ...estimators.families import CALIBRATIONS, FAMILIES, Calibrated, Family, mean_scores, recording_scores
 from ...sequence import ImuSequence
 from .choice import choose_candidate
 from .records import _sqlite_storage
@@ -103,7 +103,8 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                 test: Sequence[ImuSequence], axes: int, families: Sequence[str], calibrations: Sequence[str],
                 trials: int, seed: int, storage: Optional[str], learned: Dict[str, Any], learned_split: int,
                 tie_margin: float, incl_margin: float, log: Callable[[str], None] = print,
-                tune_seconds: Optional[float] = None) -> Dict[str, Any]:
+                tune_seconds: Optional[float] = None,
+                progress: Callable[[str], None] = lambda step: None) -> Dict[str, Any]:
     """Steps 2-4 of the module docstring for one outer fold and one seed.
 
     ``splits``: the inner (training, validation) pairs (every other fold as validation in turn,
@@ -118,20 +119,26 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
     t0 = time.perf_counter()
     cands: Dict[str, Dict[str, Any]] = {}
     for name, fam, c, tuned in candidate_names(families, calibrations):
-        per_split = []
+        per_split, per_rec = [], []
         for j, (tr, va) in enumerate(splits):
             est, knobs = _fit_candidate(fam, c, tuned, tr, axes, trials, seed, storage,
                                         f"fold{outer}_split{j}_seed{seed}_{fam}_{c}", tune_seconds)
-            per_split.append(mean_scores(est, va, axes))
+            aae, incl = recording_scores(est, va, axes)
+            per_split.append((float(np.mean(aae)), float(np.mean(incl))))
+            per_rec.append(aae)
         a = np.array(per_split)
         cands[name] = {"family": fam, "calibration": c, "tuned": tuned, "inner_val": a.tolist(),
+                       "inner_val_recordings": per_rec,
                        "inner_val_aae": float(a[:, 0].mean()), "inner_val_inclination": float(a[:, 1].mean())}
+        progress(name)
         log(f"   fold {outer} seed {seed}: {name:<32s} inner val {a[:, 0].mean():8.3f} / {a[:, 1].mean():6.3f} "
             f"(per split {np.round(a[:, 0], 2).tolist()})")
     for fam, est in learned.items():  # compared on the one split it was validated on
-        v = mean_scores(est, splits[learned_split][1], axes)
-        cands[fam] = {"family": fam, "calibration": "learned", "tuned": True, "inner_val": [list(v)],
-                      "inner_val_aae": v[0], "inner_val_inclination": v[1], "checkpoint": getattr(est, "ckpt_path", None)}
+        aae, incl = recording_scores(est, splits[learned_split][1], axes)
+        v = (float(np.mean(aae)), float(np.mean(incl)))
+        cands[fam] = {"family": fam.split(" ")[0], "calibration": "learned", "tuned": True, "inner_val": [list(v)],
+                      "inner_val_recordings": [aae], "inner_val_aae": v[0], "inner_val_inclination": v[1],
+                      "checkpoint": getattr(est, "ckpt_path", None)}
         log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (on inner split {learned_split})")
     chosen = choose_candidate(cands, learned_split, tie_margin, incl_margin)
     log(f"   fold {outer} seed {seed}: chose {chosen}")
@@ -143,6 +150,7 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                                     f"fold{outer}_all_seed{seed}_{fam}_{c}", tune_seconds)
         cands[name]["knobs"] = knobs
         fitted[name] = Calibrated(est, None, name=name)
+        progress(f"{name} refitted")
     fitted.update({k: Calibrated(v, None, name=k) for k, v in learned.items()})
     res = evaluate(list(fitted.values()), test, axes=axes, plots=False, trajectories=False)
     means = {m: {k: v["mean"].get(k) for k in ("aae_deg", "inclination_deg", "n_recordings")}

@@ -41,7 +41,7 @@ def _record_path(out: Path, fold: int, seed: int) -> Path:
     return Path(out) / "records" / f"fold{fold}_seed{seed}.json"
 
 
-RECIPE_KEYS = ("inner", "families", "calibrations", "learned_checkpoint", "learned", "tune_seconds", "trials",
+RECIPE_KEYS = ("inner", "families", "calibrations", "learned_checkpoint", "learned", "learn", "tune_seconds", "trials",
                "tie_margin", "incl_margin")
 """The search settings a fold x seed record depends on (with the folds): a record written with
 others is not reused."""

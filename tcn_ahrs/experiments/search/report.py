@@ -29,6 +29,7 @@ def summary_markdown(result: Dict[str, Any]) -> str:
                   f"(best classical with defaults {np.mean([r['best_classical_aae_deg'] for r in rows]):.2f}); never worse in "
                   f"{sum(r['never_worse'] for r in rows)} of {len(rows)} fold × seed runs; search time "
                   f"{result['seconds'] / 60:.1f} min on this machine."]
+    lines.append(f"Expected on new recordings of this device: {expected_gain(rows)['sentence']}.")
     if result.get("skipped"):
         lines.append(f"Lighter than the full search: {'; '.join(result['skipped'])}.")
     return "\n".join(lines) + "\n"
@@ -50,3 +51,38 @@ def search_markdown(result: Dict[str, Any]) -> str:
             lines.append(f"| {name} | {c['inner_val_aae']:.2f} | {c['inner_val_inclination']:.2f} | "
                          f"{t.get('aae_deg', float('nan')):.2f} | {t.get('inclination_deg', float('nan')):.2f} | {knobs} |")
     return "\n".join(lines) + "\n"
+
+
+def expected_gain(rows: List[Dict[str, Any]]) -> Dict[str, Any]:
+    """How much better than the best classical filter (defaults, raw or calibrated) the search's
+    choice is expected to be on new recordings of the device: the relative AAE gain of each outer
+    fold x seed run, (bar - chosen) / bar, its mean and sample spread (positive: better)."""
+    gains = np.array([(r["best_classical_aae_deg"] - r["aae_deg"]) / r["best_classical_aae_deg"] for r in rows
+                      if r["best_classical_aae_deg"] > 0], dtype=float)
+    if gains.size == 0:
+        return {"mean": None, "std": None, "n": 0, "sentence": "no outer fold scored"}
+    mean, std = float(gains.mean()), float(gains.std(ddof=1)) if gains.size > 1 else 0.0
+    word = "better" if mean >= 0 else "worse"
+    return {"mean": mean, "std": std, "n": int(gains.size),
+            "sentence": f"{abs(mean):.0%} {word} than the best classical filter with its defaults "
+                        f"(± {std:.0%} over {gains.size} outer fold x seed runs; worst {gains.min():+.0%})"}
+
+
+def final_summary(result: Dict[str, Any], out) -> str:
+    """The lines a person reads at the end of ``tcn-ahrs search``: the device, the release and how
+    to run it, its expected gain over the best classical filter, and what a lighter search left out."""
+    rel = result.get("release") or {}
+    gain = result.get("expected_gain") or expected_gain(result["rows"])
+    lines = ["", "== search summary",
+             f"device: {result['dataset']} ({result['axes']}-axis), {len({n for r in result['folds'] for n in r['recordings']})}"
+             f" recordings in {len({r['fold'] for r in result['rows']})} outer folds; {result['seconds'] / 60:.1f} min",
+             f"release: {rel.get('chosen')} ({rel.get('times_chosen')} of {rel.get('runs')} runs) -> "
+             f"{rel.get('path') or rel.get('how')}",
+             f"expected on new recordings of this device: {gain['sentence']}"]
+    if rel.get("path"):
+        lines.append(f"run it: tcn-ahrs evaluate ckpt={rel['path']} data=... (the model card: "
+                     f"{rel.get('card', 'the file holds its provenance')})")
+    if result.get("skipped"):
+        lines.append(f"a lighter search than the full one: {'; '.join(result['skipped'])}")
+    lines.append(f"report: {out}/search.md")
+    return "\n".join(lines)

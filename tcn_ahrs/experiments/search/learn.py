@@ -1,0 +1,170 @@
+"""The learned candidates the search trains inside its own folds (``search.learn``).
+
+Each recipe is a list of ``conf/train.yaml`` overrides (:data:`RECIPES`); for outer fold ``i`` it
+is trained on the fold's first inner training set — never on fold ``i``'s recordings — its epoch or
+inference knobs chosen on that split's validation recordings, whole (early stopping on the inner
+validation), and it is then compared with the classical candidates on those validation recordings
+(:func:`tcn_ahrs.experiments.search.choice.choose_candidate`) and scored, as trained, on fold ``i``.
+
+Compute: every training gets an equal share of what is left of ``search.budget_minutes`` as
+Lightning's ``max_time`` (:func:`share_minutes`), so the search keeps the budget it states. A
+killed search resumes: a finished training leaves ``TRAINED`` (the checkpoint that ships) in its
+run folder, an unfinished one continues from its ``last.ckpt``.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+from ...sequence import ImuSequence
+
+RECIPES: Dict[str, Tuple[str, Tuple[str, ...]]] = {
+    # the general model's residual networks fine-tuned on the device (its short schedule); it keeps
+    # the general model where the inner validation says fine-tuning did not help
+    "finetune": ("residual (fine-tuned general)",
+                 ("experiment=finetune", "init=checkpoints/general{axes}.ckpt", "train.supervision=gt")),
+    # the residual on the backbone trained longer at the residual schedule's learning rate, started
+    # from the general model's weights (same architecture, both axes)
+    "residual": ("residual (trained)",
+                 ("experiment=finetune", "init=checkpoints/general{axes}.ckpt", "train.supervision=gt",
+                  "train.epochs=12", "train.lr=0.001", "train.keep_if_not_better=false")),
+    # the learned closed loop (EuRoC's shipped family); another architecture: trained from scratch
+    "closed_loop": ("closed_loop (trained)",
+                    ("model=ahrs{axes}", "+schedule=closed_loop", "train.epochs=10", "train.device_check=true")),
+}
+"""Learned recipe -> (candidate name, ``conf/train.yaml`` overrides; ``{axes}`` is the data's)."""
+
+
+def check_recipes(names: Sequence[str]) -> List[str]:
+    bad = [n for n in names if n not in RECIPES]
+    if bad:
+        raise ValueError(f"search.learn: unknown {bad}; expected some of {list(RECIPES)}")
+    return list(names)
+
+
+def candidate_name(recipe: str) -> str:
+    return RECIPES[recipe][0]
+
+
+def share_minutes(budget_minutes: Optional[float], spent_minutes: float, trainings_left: int,
+                  classical_minutes_left: float = 0.0, floor: float = 0.5) -> Optional[float]:
+    """Minutes the next training may take: an equal share of what the budget has left once the
+    classical work still to do is set aside; None without a budget; at least ``floor`` (a
+    training shorter than that learns nothing: the budget is then overrun, and said)."""
+    if budget_minutes is None or trainings_left <= 0:
+        return None
+    left = float(budget_minutes) - spent_minutes - classical_minutes_left
+    return max(floor, left / trainings_left)
+
+
+def _max_time(minutes: Optional[float]) -> str:
+    if minutes is None:
+        return "null"
+    s = max(1, int(round(minutes * 60)))
+    return f"{s // 86400:02d}:{s // 3600 % 24:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def data_overrides(data_cfg, axes: int) -> List[str]:
+    """The search's data config as overrides of ``conf/train.yaml`` (the recordings themselves are
+    handed to the training, not read through its splits)."""
+    args = [f"data={data_cfg.name}", f"data.axes={axes}", "data.fold=null"]
+    if data_cfg.get("root"):
+        args.append(f"data.root={data_cfg.root}")
+    return args
+
+
+def train_recipe(recipe: str, run_dir: Path, train: Sequence[ImuSequence], val: Sequence[ImuSequence],
+                 data_args: Sequence[str], axes: int, minutes: Optional[float], seed: int = 0) -> Path:
+    """Train ``recipe`` on ``train`` (its epoch / inference knobs chosen on ``val``) in ``run_dir``,
+    or reuse the finished run there; returns the checkpoint that ships. ``minutes``: its time cap
+    (an unfinished run there continues from its ``last.ckpt``)."""
+    from ..lodo import compose_train
+    from ...training.run import train_main
+
+    run_dir = Path(run_dir)
+    done = run_dir / "TRAINED"
+    if done.is_file():
+        return Path(done.read_text().strip())
+    args = [a.format(axes=axes) for a in RECIPES[recipe][1]] + list(data_args)
+    # Lightning's accelerator is "auto": a GPU trains when there is one; its bar would break the search's
+    args += [f"run_dir={run_dir}", "eval.enabled=false", f"seed={seed}", f"train.max_time={_max_time(minutes)}",
+             "trainer.enable_progress_bar=false"]
+    if (run_dir / "checkpoints" / "last.ckpt").is_file():
+        args.append("resume=true")
+    cfg = compose_train(args)
+    res = train_main(cfg, train_seqs=list(train), val_seqs=list(val), overrides=args)
+    best = Path(res["best"])
+    done.write_text(str(best) + "\n")
+    return best
+
+
+class DeviceChecked:
+    """An estimator run on device-checked recordings (:func:`tcn_ahrs.device_check.checked`: the
+    gyro bias at rest subtracted), as ``tcn-ahrs evaluate`` runs a checkpoint trained on them."""
+
+    def __init__(self, inner, name: Optional[str] = None):
+        self.inner, self.name = inner, name or inner.name
+        self.axes = getattr(inner, "axes", None)
+        self.ckpt_path = getattr(inner, "ckpt_path", None)
+        self.heading_free = bool(getattr(inner, "heading_free", False))
+
+    def run(self, seq: ImuSequence, init_quat=None, init_index: int = 0):
+        from ...device_check import checked
+
+        return self.inner.run(checked([seq])[0], init_quat, init_index)
+
+
+def learned_estimator(path, name: str):
+    """The checkpoint as the search scores it: on device-checked input where it was trained on it."""
+    from ...checkpoint import checkpoint_meta, load_checkpoint
+    from ...estimators.learned import LearnedEstimator
+
+    est = LearnedEstimator(str(path), name=name)
+    layout = checkpoint_meta(load_checkpoint(str(path)), str(path))["layout"]
+    return DeviceChecked(est, name) if layout.get("device_check") else est
+
+
+def train_fold_candidates(recipes: Sequence[str], out: Path, fold: int, train: Sequence[ImuSequence],
+                          val: Sequence[ImuSequence], data_args: Sequence[str], axes: int, budget,
+                          log=print, progress=lambda name: None) -> Dict[str, Any]:
+    """Every recipe of ``recipes`` trained (or reused) for outer fold ``fold`` on one inner split,
+    each capped by ``budget.training()`` (:class:`~tcn_ahrs.experiments.search.progress.Budget`).
+    Returns ``{candidate name: estimator}``; a recipe that fails to train is left out, and said."""
+    out_est: Dict[str, Any] = {}
+    for recipe in recipes:
+        name = candidate_name(recipe)
+        run_dir = Path(out) / "learn" / f"fold{fold}" / recipe
+        with budget.training() as minutes:
+            cap = "" if minutes is None else f" (at most {minutes:.1f} min)"
+            log(f"   fold {fold}: training {name} on {[s.name for s in train]}, validated on "
+                f"{[s.name for s in val]}{cap}: {run_dir}")
+            try:
+                best = train_recipe(recipe, run_dir, train, val, data_args, axes, minutes)
+            except (ValueError, RuntimeError, FileNotFoundError) as e:  # e.g. no general model for these axes
+                log(f"   fold {fold}: {name} left out: {e}")
+                progress(f"{name} failed")
+                continue
+        out_est[name] = learned_estimator(best, name)
+        progress(name)
+    return out_est
+
+
+def gain_supported(ref: Sequence[float], got: Sequence[float], tie_margin: float) -> Tuple[bool, str]:
+    """Whether a learned candidate's per-recording AAE ``got`` beats the classical choice's ``ref``
+    (same recordings) by a margin its spread supports: the mean gain above ``tie_margin`` of the
+    reference's mean *and* above one standard error of the paired differences. One recording has
+    no spread: no adoption on it. Returns (adopt, why)."""
+    import numpy as np
+
+    ref_a, got_a = np.asarray(ref, dtype=float), np.asarray(got, dtype=float)
+    if ref_a.shape != got_a.shape or ref_a.size == 0:
+        raise ValueError(f"gain_supported: {ref_a.size} reference scores vs {got_a.size} learned ones")
+    if not np.all(np.isfinite(got_a)):
+        return False, "diverged on a validation recording"
+    d = ref_a - got_a
+    if d.size < 2:
+        return False, "one validation recording: no spread to support a margin"
+    mean, se = float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size))
+    need = tie_margin * float(ref_a.mean()) + se
+    return mean > need, f"gain {mean:.3f} deg vs needed {need:.3f} ({tie_margin:.0%} + standard error {se:.3f})"
