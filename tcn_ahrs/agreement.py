@@ -81,7 +81,8 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
     """Per-axis agreement of the gyro with the ground-truth body rate, on the samples where the
     ground truth turns (w_gt faster than ``min_rate``; the gyro may read anything there):
 
-    * ``gyro_to_gt`` (3, 3): least-squares map ``w_gt ≈ A w_gyro`` (identity when wired right);
+    * ``gyro_to_gt`` (3, 3): least-squares map ``w_gt ≈ A w_gyro + c`` (identity when wired right;
+      ``c`` takes up a constant bias);
       ``wiring``: the signed permutation nearest to it (which gyro axis reads which body axis);
       ``det``: its determinant's sign (−1: one axis flipped or two swapped, a left-handed frame);
       ``misalignment_deg``: the angle of the rotation nearest to ``A`` (a rotated body frame);
@@ -116,19 +117,23 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
     # (an axis counts when its rate spreads by more than 10 deg/s: OxIOD's trolleys roll and
     # pitch by 6-8 deg/s of vibration, too little to fit a rotation about those axes)
     out["excited_axes"] = [k for k in range(3) if gt_spread[k] > excited]
-    a = np.linalg.lstsq(g, r, rcond=None)[0].T  # r ≈ a g
+    # r ≈ a g + c: the offset c takes up a constant gyro bias (or an accelerometer offset), which in a
+    # map through the origin leaks into a as a false rotation (a simulated walk with a 5 deg/s bias
+    # read as a 16 deg mount)
+    sol = np.linalg.lstsq(np.column_stack([g, np.ones(len(g))]), r, rcond=None)[0]
+    a, offset = sol[:3].T, sol[3]
     # the evidence per body axis: how much of its reference signal the fitted map explains (R²).
     # An axis whose reference is noisier than its motion (a pendulum's motion-capture rates
     # about the axes it does not swing about: |correlation| ≤ 0.58 with the gyro) is not judged:
     # its row of the map is noise, and wiring, handedness and mount rotation read from it were
     # false refusals
-    resid = r - g @ a.T
+    resid = r - g @ a.T - offset
     r2 = 1.0 - resid.var(0) / np.maximum(r.var(0), 1e-300)
     out["axis_r2"] = [float(x) for x in r2]
     out["judged_axes"] = [k for k in out["excited_axes"] if r2[k] >= MIN_AXIS_R2]
     # how much of the expected signal the map explains: judged only where it explains most (an
     # accelerometer in fast translation reads mostly its own motion, not gravity)
-    out["explained"] = float(1.0 - ((r - g @ a.T) ** 2).sum() / max(((r - r.mean(0)) ** 2).sum(), 1e-12))
+    out["explained"] = float(1.0 - (resid ** 2).sum() / max(((r - r.mean(0)) ** 2).sum(), 1e-12))
     out["gyro_to_gt"] = a
     perm = np.zeros((3, 3))
     used = set()

@@ -579,6 +579,25 @@ def test_wiring_faults_are_caught_per_axis(tmp_path, edit, sidecar, field, messa
     assert e.value.field_name == field and str(path) in str(e.value)
 
 
+def test_a_constant_gyro_bias_is_not_taken_for_a_rotated_mount(tmp_path):
+    """Simulated walks with a 5 deg/s gyro bias (3 deg/s more or less per recording): the wiring fit
+    takes up the bias as an offset; through the origin it read 16 deg of mount rotation and refused
+    2 of 6 recordings."""
+    import numpy as np
+
+    from tcn_ahrs.datasets import load_split
+    from tcn_ahrs.datasets.simulate import simulate
+
+    for i in range(6):
+        s = simulate("walking", 30.0, 100.0, seed=10 + i, device_seed=5, axes=6, gyro_bias_range_dps=(5.0, 5.1),
+                     gyro_bias_repeatability_dps=3.0, gyro_bias_rw_dps=0.0)
+        np.savetxt(tmp_path / f"rec{i}.csv", np.column_stack([s.time, s.gyro, s.accel, s.quat]), delimiter=",",
+                   comments="", fmt="%.10g", header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,quat_w,quat_x,quat_y,quat_z")
+    refused = []
+    assert len(load_split({"name": "generic", "root": str(tmp_path), "split": "all", "axes": 6}, "all", refused)) == 6
+    assert refused == []
+
+
 def _acc_edit(fn):
     def edit(c):
         c["acc"] = fn(c["acc"].copy())
