@@ -173,6 +173,10 @@ def _search_summary(result: Mapping[str, Any]) -> str:
     for key in ("families", "calibrations", "learned"):
         if cfg.get(key) and cfg[key] != getattr(default, key):
             parts.append(f"'search.{key}={hy(cfg[key])}'")
+    if list(cfg.get("learn") or []) != default.learn:  # a record from before search.learn had none
+        parts.append(f"'search.learn={hy(list(cfg.get('learn') or []))}'")
+    if cfg.get("learn") and cfg.get("budget_minutes") != default.budget_minutes:
+        parts.append(f"search.budget_minutes={cfg.get('budget_minutes')}")
     if cfg.get("tune_seconds"):
         parts.append(f"search.tune_seconds={cfg['tune_seconds']}")
     return f"`tcn-ahrs search {' '.join(parts)}`\n\n" + summary_markdown(result)

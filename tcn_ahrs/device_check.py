@@ -152,3 +152,19 @@ def checked(seqs: Sequence[ImuSequence], report: Optional[Callable[[str, DeviceC
         for rec, (_, dc) in best.items():
             report(rec, dc)
     return [best[s.meta.get("recording", s.name)][1].calibration().apply(s) for s in seqs]
+
+
+class RestBiasCalibration:
+    """The device check as a calibration a classical filter runs on: each recording's own gyro bias
+    at rest subtracted when it is run (:func:`checked`; nothing fitted, no ground truth read) —
+    what ``tcn-ahrs evaluate`` gives every method by default. Written to an estimator file as
+    ``{"kind": "device_check"}``."""
+
+    KIND = "device_check"
+
+    def apply(self, seq: ImuSequence) -> ImuSequence:
+        return checked([seq])[0]
+
+    def to_dict(self) -> Dict[str, object]:
+        return {"kind": self.KIND, "summary": "each recording's gyro bias at rest subtracted (tcn_ahrs.device_check)"}
+

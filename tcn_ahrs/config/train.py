@@ -126,7 +126,7 @@ class SearchSection:
     folds: Optional[List[int]] = None  # outer fold indices to run (null: all of data.folds)
     inner: str = "auto"                # inner validation: folds (every other fold in turn) | fold | split | auto
     families: List[str] = field(default_factory=lambda: ["strapdown", "ecf", "mahony", "madgwick", "backbone"])
-    calibrations: List[str] = field(default_factory=lambda: ["none", "gyro_bias", "full"])
+    calibrations: List[str] = field(default_factory=lambda: ["none", "gyro_bias", "full", "device_check"])
     learn: List[str] = field(default_factory=lambda: ["finetune", "residual", "closed_loop"])  # learned recipes
                                        # trained inside the folds (tcn_ahrs.experiments.search.learn.RECIPES)
     budget_minutes: Optional[float] = 60.0  # the whole search's compute; the trainings share what the classical part leaves

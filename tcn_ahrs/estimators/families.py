@@ -88,8 +88,31 @@ CALIBRATIONS: Dict[str, Optional[Dict[str, str]]] = {
     "none": None,
     "gyro_bias": {"gyro": "bias", "acc": "none", "mag": "none"},
     "full": {"gyro": "full", "acc": "bias", "mag": "full"},
+    "device_check": {},
 }
-"""Static calibrations a classical candidate runs on (:func:`tcn_ahrs.calibration.fit_calibration`)."""
+"""Calibrations a classical candidate runs on: static ones fitted on the training recordings
+(:func:`tcn_ahrs.calibration.fit_calibration`'s modes), or ``device_check`` — each recording's own
+gyro bias at rest, read when it runs (:class:`tcn_ahrs.device_check.RestBiasCalibration`)."""
+
+
+def fit_named_calibration(name: str, train: Sequence[ImuSequence]):
+    """The calibration ``name`` of :data:`CALIBRATIONS` for recordings like ``train`` (None: raw)."""
+    if name not in CALIBRATIONS:
+        raise ValueError(f"calibration: unknown {name!r}; expected one of {list(CALIBRATIONS)}")
+    if name == "device_check":
+        from ..device_check import RestBiasCalibration
+        return RestBiasCalibration()
+    return None if CALIBRATIONS[name] is None else cal_mod.fit_calibration(train, strict=False, **CALIBRATIONS[name])
+
+
+def calibration_from_dict(d: Optional[Dict[str, Any]]):
+    """The calibration an estimator file holds (:func:`save_estimator`), None for raw signals."""
+    if d is None:
+        return None
+    if d.get("kind") == "device_check":
+        from ..device_check import RestBiasCalibration
+        return RestBiasCalibration()
+    return cal_mod.StaticCalibration.from_dict(d)
 
 
 class Calibrated:
@@ -191,6 +214,6 @@ def load_estimator(path, name: Optional[str] = None) -> Calibrated:
     p = Path(path)
     doc = read_estimator(p)
     fam = doc["family"]
-    cal = None if doc.get("calibration") is None else cal_mod.StaticCalibration.from_dict(doc["calibration"])
+    cal = calibration_from_dict(doc.get("calibration"))
     est = FAMILIES[fam].build(int(doc["axes"]), **dict(doc.get("knobs") or {}))
     return Calibrated(est, cal, name=name or f"{fam} ({p.stem})")

@@ -84,6 +84,7 @@ def _sensor_errors(noise_free: bool, device_seed: int, sens, envp, rngs, t: np.n
     if noise_free:
         eye, zeros = np.eye(3), np.zeros((n, 3))
         return {"k_gyro": eye, "k_acc": eye, "k_mag": eye, "gyro_bias": zeros, "acc_bias": zeros.copy(),
+                "g_sens": np.zeros((3, 3)),
                 "hard_iron": np.zeros(3), "d_nav": zeros.copy(), "gyro_noise": 0.0, "acc_noise": 0.0,
                 "mag_noise": 0.0, "b_g0": np.zeros(3), "b_a0": np.zeros(3)}
     rng_sensor, rng_noise, rng_dist = rngs
@@ -106,7 +107,7 @@ def _sensor_errors(noise_free: bool, device_seed: int, sens, envp, rngs, t: np.n
     rest_end = float(t[np.argmax(moving)]) if moving.any() else 0.0
     d_nav = mag_disturbance(rng_dist, t, envp, not_before=max(rest_end, min(10.0, 0.2 * duration)))
     return {"k_gyro": k_gyro, "k_acc": k_acc, "k_mag": k_mag, "gyro_bias": gyro_bias, "acc_bias": acc_bias,
-            "hard_iron": hard_iron, "d_nav": d_nav, "gyro_noise": gyro_noise, "acc_noise": acc_noise,
+            "g_sens": dev.gyro_g_sens, "hard_iron": hard_iron, "d_nav": d_nav, "gyro_noise": gyro_noise, "acc_noise": acc_noise,
             "mag_noise": mag_noise, "b_g0": b_g0, "b_a0": b_a0}
 
 
@@ -176,6 +177,8 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
     gyro_noise, acc_noise, mag_noise = e["gyro_noise"], e["acc_noise"], e["mag_noise"]
 
     gyro = omega @ k_gyro.T + gyro_bias + gyro_noise                            # Eq. 9
+    if np.any(e["g_sens"]):  # g-sensitivity: a MEMS gyro's reading moves with the specific force
+        gyro = gyro + spec_force @ e["g_sens"].T / GRAVITY
     accel = spec_force @ k_acc.T + acc_bias + acc_noise                         # Eq. 10
     mag_dist_body = np.zeros((n, 3))
     hit = np.any(d_nav != 0.0, axis=1)
@@ -187,7 +190,7 @@ def simulate(profile: str, duration: float, rate: float, seed: int, axes: int = 
     meta: Dict[str, Any] = {
         "profile": profile, "seed": seed, "device_seed": int(device_seed), "noise_free": bool(noise_free),
         "error_model": dataclasses.asdict(sens), "environment": dataclasses.asdict(envp),
-        "K_gyro": k_gyro, "K_acc": k_acc, "K_mag": k_mag,
+        "K_gyro": k_gyro, "K_acc": k_acc, "K_mag": k_mag, "gyro_g_sensitivity": e["g_sens"],
         "gyro_bias_static": b_g0, "acc_bias_static": b_a0, "hard_iron": hard_iron,
         "mag_field_nav": m_nav,
         # ground truth is ENU with geographic north; it is magnetic north only without declination

@@ -34,6 +34,8 @@ class SensorErrorModel:
         gyro_bias_repeatability_dps: per-recording (turn-on) bias offset std. [deg/s]
         gyro_bias_rw_dps:           bias random walk. [deg/s/sqrt(s)]
         gyro_noise_density_dps:     white noise density. [deg/s/sqrt(Hz)]
+        gyro_g_sensitivity_dps:     std of the entries of G, the gyro's g-sensitivity (its reading moves
+                                    by G f / g with the specific force f), device; 0: none. [deg/s per g]
     Accelerometer:
         acc_scale_std, acc_misalignment_std: as for the gyro, K_acc. [-], [rad]
         acc_bias_std:               per-axis static bias of the device (std). [m/s^2]
@@ -55,6 +57,7 @@ class SensorErrorModel:
     gyro_bias_repeatability_dps: float = 0.03
     gyro_bias_rw_dps: float = 0.002
     gyro_noise_density_dps: float = 0.01
+    gyro_g_sensitivity_dps: float = 0.0
 
     acc_scale_std: float = 0.01
     acc_misalignment_std: float = 0.005

@@ -23,6 +23,7 @@ class _Device:
     gyro_bias: np.ndarray   # rad/s
     acc_bias: np.ndarray    # m/s^2
     hard_iron: np.ndarray   # uT
+    gyro_g_sens: np.ndarray = None  # (3, 3) rad/s per g of specific force
 
 
 def _k_matrix(rng, scale_std, mis_std) -> np.ndarray:
@@ -41,7 +42,9 @@ def draw_device(device_seed: int, p: SensorErrorModel) -> _Device:
     gyro_bias = rng.choice([-1.0, 1.0], 3) * rng.uniform(lo, hi, 3) * DEG
     acc_bias = rng.normal(0.0, p.acc_bias_std, 3)
     hard_iron = rng.normal(0.0, p.hard_iron_std_ut, 3)
-    return _Device(k_gyro, k_acc, k_mag, gyro_bias, acc_bias, hard_iron)
+    # drawn last, so a device without it reads the same numbers as before the parameter existed
+    g_sens = rng.normal(0.0, p.gyro_g_sensitivity_dps * DEG, (3, 3)) if p.gyro_g_sensitivity_dps else np.zeros((3, 3))
+    return _Device(k_gyro, k_acc, k_mag, gyro_bias, acc_bias, hard_iron, g_sens)
 
 
 def bias_track(unit_normal: np.ndarray, dt: float, static: np.ndarray, rw: float) -> np.ndarray:

@@ -255,7 +255,7 @@ def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict
     import os
     import shutil
 
-    from .learn import RECIPES, candidate_name, data_overrides, train_recipe
+    from .learn import RECIPES, candidate_name, data_overrides, networks_off, train_recipe
 
     recipe = next((r for r in RECIPES if candidate_name(r) == name), None)
     if recipe is None or not folds:
@@ -274,9 +274,12 @@ def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict
     shutil.copyfile(best, tmp)
     os.replace(tmp, path)
     gain = expected_gain(result["rows"])
+    off = networks_off(path)
+    what = ("its inference knobs switch both networks off: it runs as the VQF-grade backbone with the knobs and "
+            "bias start it learned, a classical filter" if off else "learned")
     card = "\n".join([
         f"# release.ckpt: {name} for {cfg.data.name} ({axes}-axis)", "",
-        f"- family: {name}, learned (recipe `{recipe}`: {' '.join(RECIPES[recipe][1]).format(axes=axes)})",
+        f"- family: {name}, {what} (recipe `{recipe}`: {' '.join(RECIPES[recipe][1]).format(axes=axes)})",
         f"- trained on {len(train)} recordings ({', '.join(s.name for s in train)}); epoch / inference knobs chosen on "
         f"{', '.join(s.name for s in val)}",
         f"- chosen by `tcn-ahrs search` on {sum(r['chosen'] == name for r in result['rows'])} of "
@@ -285,7 +288,7 @@ def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict
         f"- run it: `tcn-ahrs evaluate ckpt={path} data={cfg.data.name}" +
         (f" data.root={cfg.data.root}`" if cfg.data.get("root") else "`"), ""])
     (out / "release.md").write_text(card)
-    return {"path": str(path), "card": str(out / "release.md"), "recipe": recipe,
+    return {"path": str(path), "card": str(out / "release.md"), "recipe": recipe, "networks_off": off,
             "trained_on": [s.name for s in train], "validated_on": [s.name for s in val]}
 
 

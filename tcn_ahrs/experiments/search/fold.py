@@ -10,9 +10,10 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from ... import calibration as cal_mod
-from ...estimators.families import CALIBRATIONS, FAMILIES, Calibrated, Family, mean_scores, recording_scores
+from ...estimators.families import FAMILIES, Calibrated, Family, fit_named_calibration, mean_scores, recording_scores
 from ...sequence import ImuSequence
 from .choice import choose_candidate
+from .learn import networks_off
 from .records import _sqlite_storage
 
 
@@ -73,7 +74,7 @@ def _fit_candidate(family: str, calib: str, tuned: bool, train: Sequence[ImuSequ
     (``tuned``) its knobs, on clips of ``tune_seconds`` (:func:`tcn_ahrs.tuning.grid.tuning_clips`,
     from 10 s before the first scored sample; None: whole recordings). Returns (estimator, knobs)."""
     fam = FAMILIES[family]
-    cal = None if CALIBRATIONS[calib] is None else cal_mod.fit_calibration(train, strict=False, **CALIBRATIONS[calib])
+    cal = fit_named_calibration(calib, train)
     knobs = dict(fam.defaults)
     if tuned and fam.defaults:
         seqs = train
@@ -138,7 +139,8 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
         v = (float(np.mean(aae)), float(np.mean(incl)))
         cands[fam] = {"family": fam.split(" ")[0], "calibration": "learned", "tuned": True, "inner_val": [list(v)],
                       "inner_val_recordings": [aae], "inner_val_aae": v[0], "inner_val_inclination": v[1],
-                      "checkpoint": getattr(est, "ckpt_path", None)}
+                      "checkpoint": getattr(est, "ckpt_path", None),
+                      "networks_off": networks_off(getattr(est, "ckpt_path", None))}
         log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (on inner split {learned_split})")
     chosen = choose_candidate(cands, learned_split, tie_margin, incl_margin)
     log(f"   fold {outer} seed {seed}: chose {chosen}")

@@ -48,7 +48,8 @@ def search_markdown(result: Dict[str, Any]) -> str:
         for name, c in rec["candidates"].items():
             t = rec["test"].get(name, {})
             knobs = ", ".join(f"{k}={v:.3g}" for k, v in (c.get("knobs") or {}).items()) if c.get("tuned") else "defaults"
-            lines.append(f"| {name} | {c['inner_val_aae']:.2f} | {c['inner_val_inclination']:.2f} | "
+            what = " (networks off: the backbone with its knobs)" if c.get("networks_off") else ""
+            lines.append(f"| {name}{what} | {c['inner_val_aae']:.2f} | {c['inner_val_inclination']:.2f} | "
                          f"{t.get('aae_deg', float('nan')):.2f} | {t.get('inclination_deg', float('nan')):.2f} | {knobs} |")
     return "\n".join(lines) + "\n"
 
@@ -76,7 +77,8 @@ def final_summary(result: Dict[str, Any], out) -> str:
     lines = ["", "== search summary",
              f"device: {result['dataset']} ({result['axes']}-axis), {len({n for r in result['folds'] for n in r['recordings']})}"
              f" recordings in {len({r['fold'] for r in result['rows']})} outer folds; {result['seconds'] / 60:.1f} min",
-             f"release: {rel.get('chosen')} ({rel.get('times_chosen')} of {rel.get('runs')} runs) -> "
+             f"release: {rel.get('chosen')}{' (networks off: the backbone with learned knobs)' if rel.get('networks_off') else ''}"
+             f" ({rel.get('times_chosen')} of {rel.get('runs')} runs) -> "
              f"{rel.get('path') or rel.get('how')}",
              f"expected on new recordings of this device: {gain['sentence']}"]
     if rel.get("path"):
