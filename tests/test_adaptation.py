@@ -124,3 +124,28 @@ def test_the_evidence_half_holds_half_of_the_scored_ground_truth():
     cut = _half(seq)
     assert abs(cut - 0.3 * len(seq)) <= 2
     assert seq.slice(cut, len(seq)).scored().sum() >= 0.49 * seq.scored().sum()
+
+
+def test_fine_tuning_on_several_recordings_is_judged_on_recordings_it_never_saw(tmp_path):
+    """train.adopt_on=recordings (the default): each of the user's recordings is left out of a
+    fine-tuning of its own and scored whole; the pooled evidence decides (adaptation.json says so),
+    and the fine-tuning runs without it are in crossfit/."""
+    from tcn_ahrs.training.run import train_main
+    from test_general import _compose, _general_checkpoint
+
+    init = _general_checkpoint(tmp_path, axes=6)
+    recs = [simulate("walking", 20.0, 100.0, s, axes=6) for s in range(2)]
+    tr = [r.slice(0, 1400) for r in recs]
+    va = [r.slice(1400, len(r)) for r in recs]
+    for whole, parts in zip(recs, zip(tr, va)):
+        for p in parts:
+            p.meta["recording"] = whole.name
+    cfg = _compose(["experiment=finetune", "data=generic", "data.axes=6", f"init={init}", "train.epochs=1",
+                    "train.window=400", "train.stride=200", "train.batch_size=4", "trainer.enable_progress_bar=false",
+                    "eval.enabled=false", "threads=1", f"run_dir={tmp_path / 'run'}"])
+    train_main(cfg, tr, va, [])
+    record = json.loads((tmp_path / "run" / "adaptation.json").read_text())
+    assert record["evidence"] == "recordings left out (cross-fitted)"
+    assert "each recording left out of its own fine-tuning" in record["why"]
+    assert sorted(p.name for p in (tmp_path / "run" / "crossfit").iterdir()) == sorted(r.name for r in recs)
+    assert record["before"]["aae_deg"] is not None and record["after"]["aae_deg"] is not None

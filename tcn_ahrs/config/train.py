@@ -52,8 +52,10 @@ class TrainConfig:
     all_recordings: bool = False  # train on every training recording, whole, nothing held out
     device_check: bool = False    # each recording's gyro bias at rest subtracted first (tcn_ahrs.device_check);
                                   # stored in the checkpoint, so evaluate does the same before it
-    keep_if_not_better: bool = True  # fine-tuning (init=): ships only if better on the held-out parts
+    keep_if_not_better: bool = True  # fine-tuning (init=): ships only if better on held-out evidence
                                      # (tcn_ahrs.training.adaptation), else the starting model ships
+    adopt_on: str = "recordings"  # that evidence: recordings (each of >= 2 left out of a fine-tuning of its own,
+                                  # scored whole: cross-fitted) | parts (the later halves of the validation parts)
     weight_decay: float = _num(0.1, 0.0)
     loss_js: List[int] = field(default_factory=lambda: [16, 32])  # open loop: increment lengths (Eq. 28)
     huber_delta: float = _num(0.005, 0.0, False)    # rad (Eq. 27)

@@ -45,6 +45,8 @@ def check_train_values(train: Mapping) -> None:
         span = list(span)
         if len(span) != 2 or not (0.0 < float(span[0]) <= float(span[1])):
             raise ValueError(f"train.augment.rate_hz: expected [low, high] Hz with 0 < low <= high, got {span}")
+    if str(train.get("adopt_on", "recordings")) not in ("recordings", "parts"):
+        raise ValueError(f"train.adopt_on: expected recordings or parts, got {train.get('adopt_on')!r}")
     if train.get("monitor") is not None and str(train.get("monitor")) not in MONITORS:
         near = difflib.get_close_matches(str(train.get("monitor")), MONITORS, n=1)
         raise ValueError(f"train.monitor: expected one of {list(MONITORS)} (the validation metrics logged), got "

@@ -23,7 +23,8 @@ RECIPES: Dict[str, Tuple[str, Tuple[str, ...]]] = {
     # the general model's residual networks fine-tuned on the device (its short schedule); it keeps
     # the general model where the inner validation says fine-tuning did not help
     "finetune": ("residual (fine-tuned general)",
-                 ("experiment=finetune", "init=checkpoints/general{axes}.ckpt", "train.supervision=gt")),
+                 ("experiment=finetune", "init=checkpoints/general{axes}.ckpt", "train.supervision=gt",
+                  "train.adopt_on=parts")),  # its validation recordings are already others than it trained on
     # the residual on the backbone trained longer at the residual schedule's learning rate, started
     # from the general model's weights (same architecture, both axes)
     "residual": ("residual (trained)",
