@@ -149,7 +149,15 @@ class Yardstick:
             return m
         t0 = seq.time[int(np.argmax(seq.quat_valid))]
         settled = m & (seq.time >= t0 + self.settle_s)
-        return settled if settled.any() else m
+        if settled.any() or not m.any():
+            return settled
+        # said, not silent: every method is scored on the settling samples of a short recording
+        import warnings
+        warnings.warn(f"{getattr(seq, 'name', 'recording')}: its ground truth ends within the yardstick's "
+                      f"{self.settle_s:g} s settle ({seq.time[m][-1] - t0:.2f} s after its first valid sample): "
+                      "every method is scored on all its samples, the settle included (not comparable with "
+                      "longer recordings)", stacklevel=2)
+        return m
 
     @staticmethod
     def alignment(seq, axes: int) -> str:

@@ -82,6 +82,15 @@ def test_settling_time_and_heading_alignment_are_the_tables(walk):
     assert row["n_scored"] == int(np.sum(walk.time >= walk.time[0] + metrics.YARDSTICK.settle_s))
 
 
+def test_a_recording_shorter_than_the_settle_is_scored_whole_and_said():
+    """A 1.5 s recording: every sample is scored (nothing else is left), and a warning names the
+    recording and the settle (it was silent)."""
+    short = simulate("walking", 1.5, 100.0, seed=3, axes=6)
+    with pytest.warns(UserWarning, match=r"sim_walking.*within the yardstick's 2 s settle.*scored on all its samples"):
+        m = metrics.YARDSTICK.mask(short)
+    assert m.sum() == short.scored().sum()
+
+
 def test_vqf_started_at_ground_truth_is_the_backbone(walk):
     pytest.importorskip("vqf")
     from tcn_ahrs.estimators.backbone import Backbone

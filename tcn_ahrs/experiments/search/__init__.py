@@ -227,7 +227,8 @@ def release(cfg, result: Dict[str, Any], out: Path, axes: int, families: Sequenc
     from ...estimators.families import save_estimator
 
     name, counts = release_choice(result, float(cfg.search.tie_margin))
-    rec = result["folds"][0]["candidates"][name]
+    # (a learned recipe that failed to train in one fold is missing from that fold's record)
+    rec = next(r["candidates"][name] for r in result["folds"] if name in r["candidates"])
     info = {"chosen": name, "times_chosen": counts[name], "runs": len(result["rows"]), "family": rec["family"]}
     every = [s for s in load_split(cfg.data, "trainval") if s.has_gt]
     if rec["calibration"] == "learned":

@@ -98,11 +98,13 @@ def release_choice(result: Dict[str, Any], tie_margin: float) -> Tuple[str, Dict
     if len(tied) == 1:
         return tied[0], dict(counts)
     recs = result["folds"]
-    learned_tied = any(recs[0]["candidates"][k]["calibration"] == "learned" for k in tied)
+    learned_tied = any(r["candidates"][k]["calibration"] == "learned" for r in recs for k in tied if k in r["candidates"])
 
     def score(name: str) -> float:
         vals = []
         for r in recs:
+            if name not in r["candidates"]:  # a learned recipe that failed to train in that fold
+                continue
             c = r["candidates"][name]
             rows = np.asarray(c["inner_val"], dtype=float)
             if learned_tied and c["calibration"] != "learned":
