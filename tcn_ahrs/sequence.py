@@ -140,7 +140,7 @@ class ImuSequence:
         if not np.all(d > 0):
             i = int(np.argmax(~(d > 0)))
             self._fail("time", f"expected strictly increasing timestamps; sample {i + 1} "
-                               f"({self.time[i + 1]!r}) does not follow sample {i} ({self.time[i]!r})")
+                               f"({float(self.time[i + 1])!r} s) does not follow sample {i} ({float(self.time[i])!r} s)")
         if not self.rate or self.rate <= 0:
             self.rate = float(1.0 / np.median(d))
         if self.quat is not None:

@@ -22,7 +22,8 @@ def check_number(value: Any, key: str, kind=float, low: Optional[float] = None, 
     except (TypeError, ValueError):
         raise ValueError(f"{key}: expected {want}, got {value!r}") from None
     if (low is not None and (v < low or (v == low and not low_ok))) or (high is not None and v >= high):
-        raise ValueError(f"{key}: expected {want}, got {value!r}")
+        shown = value.item() if hasattr(value, "item") else value  # 3.5, not np.float64(3.5)
+        raise ValueError(f"{key}: expected {want}, got {shown!r}")
     return v
 
 

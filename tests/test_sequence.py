@@ -73,3 +73,21 @@ def test_deg_per_s_detected_during_motion_by_range():
     gyro_deg = np.c_[np.zeros(n), np.zeros(n), 200.0 * np.sin(t)]  # 200 deg/s peaks: fine in deg, too much in rad
     with pytest.raises(DataError, match="deg/s"):
         make(n=n, gyro=gyro_deg)
+
+
+def test_a_refusal_shows_plain_numbers():
+    from tcn_ahrs.datasets.simulate import simulate
+
+    """Messages name values as a person writes them: 3.5, not np.float64(3.5)."""
+    from tcn_ahrs.sequence import DataError
+    from tcn_ahrs.validate import check_number
+
+    s = simulate("static", 1.0, 100.0, seed=0, axes=6)
+    t = s.time.copy()
+    t[10] = t[9]
+    with pytest.raises(DataError) as e:
+        ImuSequence(name="x", source="x.csv", time=t, gyro=s.gyro, accel=s.accel)
+    assert "np.float64" not in str(e.value) and "(0.09 s) does not follow" in str(e.value)
+    with pytest.raises(ValueError) as e:
+        check_number(np.float64(3.5), "rate", float, 0.0, True, 2.0)
+    assert str(e.value).endswith("got 3.5")
