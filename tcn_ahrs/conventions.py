@@ -43,6 +43,9 @@ MAX_GYRO = 100.0    # rad/s, per axis
 MAX_ACCEL = 4000.0  # m/s², per axis
 MAX_MAG = 10000.0   # µT, per axis
 MAX_DT = 1.0        # s, one time step
+MIN_DT = 1e-5       # s, one time step: 100 kHz, above any MEMS IMU's rate. Shorter steps are clock faults
+                    # (duplicated or garbled stamps); the C runtime's float filter turned its bias NaN for good
+                    # at dt <= 1e-14 s, so every runtime refuses them (Python, ONNX/torch.export loaders, C)
 INPUT_RANGES = {"gyro": MAX_GYRO, "accel": MAX_ACCEL, "mag": MAX_MAG}
 INPUT_LIMITS = (MAX_GYRO,) * 3 + (MAX_ACCEL,) * 3 + (MAX_MAG,) * 3
 """The same per channel of a raw sample (gyro x,y,z, acc x,y,z, mag x,y,z)."""

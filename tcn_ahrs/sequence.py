@@ -13,7 +13,7 @@ from typing import Optional
 import numpy as np
 
 from .agreement import EXCITED_RATE, axis_fit, ground_truth_agreement  # noqa: F401 (re-exported)
-from .conventions import GRAVITY, INPUT_RANGES, MAX_DT
+from .conventions import GRAVITY, INPUT_RANGES, MAX_DT, MIN_DT
 
 
 class DataError(ValueError):
@@ -185,6 +185,11 @@ class ImuSequence:
             self._fail("time", f"expected seconds; the median step is {step:.4g} s{said}, a {1.0 / step:.3g} Hz IMU: "
                                + (f"the timestamps look like {names[unit]}: declare time_unit: {unit}" if unit
                                   else "check the timestamps' unit"))
+        if float(d.min()) < MIN_DT:
+            i = int(np.argmin(d))
+            self._fail("time", f"samples {i} and {i + 1} are {float(d[i]):.3g} s apart (t = {float(self.time[i]):.9g} s; "
+                               f"median step {step:.3g} s): below {MIN_DT:g} s, the shortest step any runtime takes "
+                               "(a duplicated or garbled timestamp); drop one of the two samples")
         if float(d.max()) > MAX_DT:
             i = int(np.argmax(d))
             self._fail("time", f"a gap of {d[i]:.4g} s between samples {i} and {i + 1} (t = {self.time[i]:.6g} -> "

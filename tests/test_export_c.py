@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tcn_ahrs.conventions import MIN_DT
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.export.c import kernel_c
 from tcn_ahrs.export.c.runtime import WIDE_KERNELS, template
@@ -305,6 +306,8 @@ def test_bad_samples_are_refused_before_the_state_changes(built, name):
         bad[ch] = v
         cases.append((bad, dt, code))
     cases += [(imu[k], 0.0, 3), (imu[k], -dt, 3), (imu[k], np.nan, 3), (imu[k], np.inf, 3), (imu[k], 2.0, 3)]
+    # the fault trial's tiny steps (one left the bias NaN for good): below conventions.MIN_DT
+    cases += [(imu[k], d, 3) for d in (1e-14, 1e-9, 0.5 * MIN_DT)]
     c_rt.reset(q0)
     c_rt.run(imu[:k], dt)
     for bad, d, want in cases:

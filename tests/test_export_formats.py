@@ -151,6 +151,8 @@ def test_bad_samples_refused_with_the_state_unchanged(exported, kind):
     spike[1] = 1e6
     for sample, dt, match in ((nan, 0.01, "non-finite"), (spike, 0.01, "beyond any sensor"), (imu[20], 0.0, "dt"),
                               (imu[20], float("nan"), "dt"), (imu[20], 2.0, "dt"), (imu[20], -0.01, "dt"),
+                              # the fault trial's tiny steps: below conventions.MIN_DT, as C refuses them
+                              (imu[20], 1e-14, "dt"), (imu[20], 1e-9, "dt"), (imu[20], 5e-6, "dt"),
                               (imu[20, :5], 0.01, "expected")):
         with pytest.raises(ValueError, match=match):
             a.step(sample, dt)
@@ -168,6 +170,8 @@ def test_bad_samples_refused_with_the_state_unchanged(exported, kind):
         batch.run(bad, 0.01, seq.quat[0])
     with pytest.raises(ValueError, match="dt"):
         batch.run(imu[:10], np.r_[0.01, 0.01, 0.0, [0.01] * 7], seq.quat[0])
+    with pytest.raises(ValueError, match="dt"):
+        batch.run(imu[:10], np.r_[0.01, 0.01, 1e-14, [0.01] * 7], seq.quat[0])
 
 
 def test_metadata_round_trip(exported):

@@ -91,3 +91,18 @@ def test_a_refusal_shows_plain_numbers():
     with pytest.raises(ValueError) as e:
         check_number(np.float64(3.5), "rate", float, 0.0, True, 2.0)
     assert str(e.value).endswith("got 3.5")
+
+
+def test_a_step_below_the_runtimes_floor_is_refused_at_the_loader():
+    """Two samples 1e-14 s apart (the fault trial's clock): refused naming both samples and the floor
+    every runtime shares (conventions.MIN_DT), not passed on to a filter."""
+    from tcn_ahrs.conventions import MIN_DT
+    from tcn_ahrs.datasets.simulate import simulate
+
+    s = simulate("static", 1.0, 100.0, seed=0, axes=6)
+    for step in (1e-14, 0.5 * MIN_DT):
+        t = s.time.copy()
+        t[10] = t[9] + step
+        with pytest.raises(DataError, match=r"samples 9 and 10 are .* apart .* below 1e-05 s") as e:
+            ImuSequence(name="x", source="x.csv", time=t, gyro=s.gyro, accel=s.accel)
+        assert e.value.field_name == "time"

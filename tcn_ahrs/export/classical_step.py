@@ -192,7 +192,7 @@ def prepare_classical(path, fmt: str, onnx: bool = False):
     from pathlib import Path
 
     from .. import __version__
-    from ..conventions import INPUT_LIMITS, MAX_DT
+    from ..conventions import INPUT_LIMITS, MAX_DT, MIN_DT
     from ..estimators.families import read_estimator
     from .inputs import ExportError
 
@@ -215,5 +215,5 @@ def prepare_classical(path, fmt: str, onnx: bool = False):
           "api": {"step": "quat (4,), omega (3,), state_out (S,) = step(sample (C,) float64 raw readings, dt () "
                           "float64 [s], state (S,) float64); the first sample after reset fixes the start and "
                           "returns q0"},
-          "state": ecf_state_spec(step), "max_dt": float(MAX_DT), "input_limits": [float(v) for v in INPUT_LIMITS]}
+          "state": ecf_state_spec(step), "max_dt": float(MAX_DT), "min_dt": float(MIN_DT), "input_limits": [float(v) for v in INPUT_LIMITS]}
     return step, md

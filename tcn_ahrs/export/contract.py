@@ -37,9 +37,9 @@ def checked_chunk(stream, samples, dt) -> Tuple[np.ndarray, np.ndarray]:
 
 def check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
     """ValueError unless every reading is finite and within the physical ranges
-    (:data:`tcn_ahrs.conventions.INPUT_RANGES`) and every (used) step is finite, > 0 and
-    <= :data:`~tcn_ahrs.conventions.MAX_DT` s."""
-    from ..conventions import INPUT_LIMITS, INPUT_RANGES, MAX_DT
+    (:data:`tcn_ahrs.conventions.INPUT_RANGES`) and every (used) step is finite, >=
+    :data:`~tcn_ahrs.conventions.MIN_DT` and <= :data:`~tcn_ahrs.conventions.MAX_DT` s."""
+    from ..conventions import INPUT_LIMITS, INPUT_RANGES, MAX_DT, MIN_DT
 
     if not np.isfinite(xs).all():
         i = [int(v) for v in np.argwhere(~np.isfinite(xs))[0]]
@@ -51,8 +51,8 @@ def check_samples(xs: np.ndarray, dts: np.ndarray) -> None:
         raise ValueError(f"sample: value {xs[i[0], i[1]]:.4g} at index {i} is beyond any sensor's range (|gyro| <= "
                          f"{INPUT_RANGES['gyro']:g} rad/s, |acc| <= {INPUT_RANGES['accel']:g} m/s^2, |mag| <= "
                          f"{INPUT_RANGES['mag']:g} uT per axis): a spike; drop or interpolate that sample")
-    if dts.size and not (np.isfinite(dts).all() and (dts > 0.0).all() and (dts <= MAX_DT).all()):
-        raise ValueError(f"dt: expected finite time steps in (0, {MAX_DT:g}] s since the previous sample, got "
+    if dts.size and not (np.isfinite(dts).all() and (dts >= MIN_DT).all() and (dts <= MAX_DT).all()):
+        raise ValueError(f"dt: expected finite time steps in [{MIN_DT:g}, {MAX_DT:g}] s since the previous sample, got "
                          f"{dts.tolist()}")
 
 

@@ -8,7 +8,7 @@ from typing import Dict, List, Union
 import torch
 from torch import Tensor, nn
 
-from ..conventions import INPUT_LIMITS, MAX_DT
+from ..conventions import INPUT_LIMITS, MAX_DT, MIN_DT
 
 
 
@@ -32,7 +32,9 @@ class InputChecks(nn.Module):
         # per channel: gyro x,y,z, acc x,y,z, mag x,y,z (conventions.INPUT_LIMITS)
         self.register_buffer("input_limits", torch.tensor(INPUT_LIMITS, dtype=torch.float64))
         self.max_dt = float(MAX_DT)
+        self.min_dt = float(MIN_DT)
         self.max_dt_text = f"{MAX_DT:g}"
+        self.min_dt_text = f"{MIN_DT:g}"
 
     def _check_finite(self, x: Tensor, what: str):
         """Raise on NaN/inf or a value beyond any sensor's range (``input_limits``), naming the
@@ -51,9 +53,9 @@ class InputChecks(nn.Module):
                              + " (expected finite readings: drop or interpolate that sample)")
 
     def _check_step(self, dt: float, first: bool):
-        """dt of a step after the first must be finite, > 0 s and <= max_dt (the first is not used)."""
-        if not first and not (dt > 0.0 and dt <= self.max_dt):
-            raise ValueError("dt: expected a finite time step in (0, " + self.max_dt_text
+        """dt of a step after the first must be finite and in [min_dt, max_dt] s (the first is not used)."""
+        if not first and not (dt >= self.min_dt and dt <= self.max_dt):
+            raise ValueError("dt: expected a finite time step in [" + self.min_dt_text + ", " + self.max_dt_text
                              + "] s since the previous sample, got " + str(dt))
 
     def _q0(self, q0: Tensor) -> Tensor:
@@ -76,10 +78,11 @@ class InputChecks(nn.Module):
             d = torch.full([n], float(dt), dtype=dtype)
         # dt[0] is not used (Eq. 3); every later step must be a finite positive time
         later = d[1:]
-        bad = torch.logical_not((later > 0) & (later <= self.max_dt))
+        bad = torch.logical_not((later >= self.min_dt) & (later <= self.max_dt))
         if bool(bad.any()):
             k = int(torch.nonzero(bad)[0, 0]) + 1
-            raise ValueError("dt: expected finite time steps in (0, " + self.max_dt_text + "] s after sample 0, got "
+            raise ValueError("dt: expected finite time steps in [" + self.min_dt_text + ", " + self.max_dt_text
+                             + "] s after sample 0, got "
                              + str(float(d[k])) + " at index " + str(k))
         return d
 

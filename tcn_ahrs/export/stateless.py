@@ -40,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from ..kernels import backbone as K
-from ..conventions import INPUT_LIMITS, MAX_DT
+from ..conventions import INPUT_LIMITS, MAX_DT, MIN_DT
 from ..kernels.ops import torch_ops
 from .backbone_graph import N_COEFF_GRAPH, BackboneGraph
 from .classical_step import magnetic_start
@@ -307,7 +307,7 @@ class StatefulLoop:
         from .contract import one_sample
 
         x = np.asarray(sample, dtype=np.float64)
-        if not (x.shape == (self.axes,) and 0.0 < dt <= MAX_DT and bool((np.abs(x) <= self._limit).all())):
+        if not (x.shape == (self.axes,) and MIN_DT <= dt <= MAX_DT and bool((np.abs(x) <= self._limit).all())):
             x = one_sample(self, sample, dt)[0]
         q, w, self.state = self._run_graph(x, float(dt), self.state)
         return q, w
@@ -387,9 +387,10 @@ def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None,
                          "state[ring0] = state.init.ring0_row  (tcn_ahrs.export.stateless.initial_state)",
                 "batch": "quat (N,4), omega (N,3) = reset(q0) + the step over the N samples (the loader's run)",
                 "checks": "none inside the graph: the loader refuses a non-finite or out-of-range sample or a dt "
-                          "not in (0, max_dt] before running it (state unchanged)"},
+                          "not in [min_dt, max_dt] before running it (state unchanged)"},
         "state": state_spec(step),
         "max_dt": float(MAX_DT),
+        "min_dt": float(MIN_DT),
         "input_limits": [float(v) for v in INPUT_LIMITS],
     })
     return step, md

@@ -11,7 +11,7 @@ from typing import Any, Dict
 
 import numpy as np
 
-from ...conventions import GRAVITY, INPUT_LIMITS, MAX_DT
+from ...conventions import GRAVITY, INPUT_LIMITS, MAX_DT, MIN_DT
 from ...kernels import classical as KC
 from ...kernels import quat as KQ
 from ..inputs import ExportError
@@ -50,7 +50,7 @@ def generate_classical_c(doc: Dict[str, Any], name: str, source: str = "a tcn-ah
         "M_MIN": repr(float(knobs["m_min"])), "M_MAX": repr(float(knobs["m_max"])), "GRAVITY": repr(float(GRAVITY)),
         "GYRO_INV": _lits(inv(cal.gyro_matrix)), "ACC_INV": _lits(inv(cal.acc_matrix)),
         "MAG_INV": _lits(inv(cal.mag_matrix)), "GYRO_BIAS": _lits(cal.gyro_bias), "ACC_BIAS": _lits(cal.acc_bias),
-        "HARD_IRON": _lits(cal.hard_iron), "LIMITS": _f64(INPUT_LIMITS[:axes]), "MAX_DT": repr(float(MAX_DT)),
+        "HARD_IRON": _lits(cal.hard_iron), "LIMITS": _f64(INPUT_LIMITS[:axes]), "MAX_DT": repr(float(MAX_DT)), "MIN_DT": repr(float(MIN_DT)),
     }
 
     def fill(text: str) -> str:

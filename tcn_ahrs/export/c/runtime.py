@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from ...app import staged_files
-from ...conventions import INPUT_LIMITS, MAX_DT
+from ...conventions import INPUT_LIMITS, MAX_DT, MIN_DT
 from ...kernels import backbone as K
 from ..inputs import ExportError
 from .translate import kernel_c
@@ -156,7 +156,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
         "N_WTS": str(wts.size), "USE_MAG": "1" if use_mag else "0",
         "LAYER_CALLS": "\n".join(calls), "BLOCK": str(BLOCK),
         "WTS": _f32(wts), "HEAD_W": _f64(head_w), "HEAD_B": _f64(head_b), "PARAMS": _f64(p), "STATE0": _f64(s0),
-        "BIAS0": _f64(bias0), "LIMITS": _f64(INPUT_LIMITS[:c]), "MAX_DT": repr(float(MAX_DT)),
+        "BIAS0": _f64(bias0), "LIMITS": _f64(INPUT_LIMITS[:c]), "MAX_DT": repr(float(MAX_DT)), "MIN_DT": repr(float(MIN_DT)),
         "ERF_P": _f32(ERF_P), "ERF_Q": _f32(ERF_Q), "N_ERF_P": str(len(ERF_P)), "N_ERF_Q": str(len(ERF_Q)),
         "GYRO_SCALE": repr(float(cal.gyro_scale)), "GYRO_CLIP": repr(float(cal.gyro_clip)),
         "TRUST_MAX": repr(float(loop.trust_max)), "TRUST_W": repr(float(loop.trust_weight)),
