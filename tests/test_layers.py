@@ -31,8 +31,8 @@ LAYERS = [
     # device check (the gyro bias at rest, read without ground truth)
     {"filters", "calibration", "device_check"},
     # the learned model, its losses and the scores (AAE, ...); checkpoints (which build models);
-    # navigation examples built on the filters' Kalman pieces
-    {"model", "losses", "metrics", "checkpoint", "nav"},
+    # navigation examples built on the filters' Kalman pieces; the health flags in words
+    {"model", "losses", "metrics", "checkpoint", "nav", "health"},
     # one interface over classical, learned and peer estimators; the papers' reproductions
     {"estimators", "reproduce"},
     # evaluation runs, knob selection (tuning/: the classical grids, a learned model's knobs), training data

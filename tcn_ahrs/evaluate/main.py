@@ -131,6 +131,22 @@ def _recordings(cfg: DictConfig, general_model: bool = False):
     return seqs, refused
 
 
+def print_health(res: Dict[str, Any], file=None) -> None:
+    """Per recording, what the health checks of the methods that run them found (tcn_ahrs.health):
+    one line per distinct finding, naming the methods; "no fault found" when they ran and found none."""
+    import sys
+
+    file = file or sys.stdout
+    for i, rec in enumerate(res["recordings"]):
+        found: Dict[str, list] = {}
+        for method, m in res["methods"].items():
+            health = m["recordings"][i].get("health") if i < len(m["recordings"]) else None
+            if health is not None:
+                found.setdefault("; ".join(health) or "no fault found", []).append(method)
+        for text, methods in found.items():
+            print(f"health, {rec} ({', '.join(methods)}): {text}", file=file)
+
+
 def _run(cfg: DictConfig, learned, seqs, refused, axes: int, out: str) -> Dict[str, Any]:
     """The chosen estimator + Raw IMU (+ ``baselines``) through the runner, written to ``out``.
     Recordings the loader ``refused`` (name, reason) are listed on screen and in
@@ -153,6 +169,7 @@ def _run(cfg: DictConfig, learned, seqs, refused, axes: int, out: str) -> Dict[s
             (stage / "refused.txt").write_text("".join(f"{name}: {reason}\n" for name, reason in refused))
     print(f"results in {out}")
     print_table(res)
+    print_health(res)
     if refused:
         raise ValueError(f"evaluate: {len(refused)} recording(s) refused (the other {len(seqs)} are evaluated in "
                          f"{out}; the reasons also in {Path(out) / 'refused.txt'}):{why}")

@@ -13,6 +13,7 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 
 from ..estimators.base import initial_state
+from ..health import health_report
 from ..metrics import HEADING_KEYS, alignment_name, extra_metrics, metric_keys, sequence_metrics
 from ..sequence import ImuSequence
 from .files import plot_recording, safe_name, write_tum
@@ -148,6 +149,9 @@ def evaluate(
                    "axes": seq_in.num_axes, **m, "run_time_s": run_time}
             if heading_free:
                 row["heading_free"] = True
+            health = health_report(seq_in.time, res.signals)
+            if health is not None:  # the estimator runs the health checks: what they found (or [])
+                row["health"] = health
             methods[est.name]["recordings"].append({k: jsonable(v) for k, v in row.items()})
             if verbose:
                 print(f"{est.name:>20s} {seq.name:<45s} AAE {m['aae_deg']:8.3f}  AYE {m['aye_deg']:8.3f}  "
