@@ -370,11 +370,11 @@ def test_a_learned_checkpoint_with_its_networks_off_is_called_the_backbone(tmp_p
     assert not networks_off(tmp_path / "on.ckpt") and not networks_off(None)
 
 
-def _device_root(tmp_path, n=6, seconds=30.0, **device):
+def _device_root(tmp_path, n=6, seconds=30.0, profile="walking", **device):
     root = tmp_path / "device"
     root.mkdir()
     for i in range(n):
-        s = simulate("walking", seconds, 100.0, seed=10 + i, device_seed=5, axes=6, **device)
+        s = simulate(profile, seconds, 100.0, seed=10 + i, device_seed=5, axes=6, **device)
         np.savetxt(root / f"rec{i}.csv", np.column_stack([s.time, s.gyro, s.accel, s.quat]), delimiter=",",
                    comments="", fmt="%.10g", header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,quat_w,quat_x,quat_y,quat_z")
     return root
@@ -403,3 +403,27 @@ def test_a_learned_candidate_that_cannot_win_is_not_chosen(tmp_path):
         assert rec["test"][name]["aae_deg"] < 0.2 * rec["test"]["madgwick (defaults)"]["aae_deg"]  # it learned the bias
     assert res["release"]["chosen"] != name and (out / "estimator.json").is_file()
     assert not (out / "release.ckpt").exists()
+
+
+def test_a_learned_candidate_that_must_win_is_chosen_and_released(tmp_path):
+    """A drone (sustained accelerations) whose gyro reads 5 deg/s off, searched against raw strapdown
+    integration alone: integration drifts by degrees a second, the fine-tuned general model (the
+    backbone's bias estimation, the device check) holds the attitude, so the rule must adopt it on
+    every fold — by a gain far above its spread — and release it as release.ckpt with its card."""
+    import json
+
+    from tcn_ahrs.cli import main
+
+    root = _device_root(tmp_path, profile="drone", gyro_bias_range_dps=(5.0, 5.1), gyro_bias_repeatability_dps=0.5,
+                        gyro_bias_rw_dps=0.0)
+    out = tmp_path / "search"
+    main(["search", "data=generic", f"data.root={root}", "data.axes=6", "search.trials=2", "search.seeds=[0]",
+          "search.families=[strapdown]", "search.calibrations=[none]", "search.learn=[finetune]",
+          "search.budget_minutes=5", f"search.out={out}", f"hydra.run.dir={tmp_path / 'h'}"])
+    res = json.loads((out / "search.json").read_text())
+    name = "residual (fine-tuned general)"
+    assert [r["chosen"] for r in res["rows"]] == [name] * 3
+    for rec in res["folds"]:
+        assert rec["test"][name]["aae_deg"] < 0.5 * rec["test"]["strapdown (defaults)"]["aae_deg"]
+    assert res["release"]["chosen"] == name and (out / "release.ckpt").is_file() and (out / "release.md").is_file()
+    assert res["expected_gain"]["mean"] > 0.5
