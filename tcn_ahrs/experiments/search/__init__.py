@@ -103,10 +103,10 @@ def search_main(cfg) -> Dict[str, Any]:
                 print(f"== outer fold {i}: scored on {[s.name for s in fold_data['test']]}; {inner}", flush=True)
             return fold_data
 
-        read_seconds += sum(float(r["seconds"]) for r in done.values() if r is not None)
+        read_seconds += sum(float(r["seconds"]) + float(r.get("learn_seconds", 0.0)) for r in done.values() if r is not None)
         if all(r is not None for r in done.values()):  # every seed of this fold ran (earlier, or another job)
             print(f"== outer fold {i}: seeds {seeds} read from {out / 'records'}", flush=True)
-        learned = None
+        learned, t_learn = None, None
         for seed in seeds:
             if done[seed] is None:
                 d = data()
@@ -114,6 +114,7 @@ def search_main(cfg) -> Dict[str, Any]:
                     learned = _learned_candidates(learned_spec, i, str(sc.get("learned_checkpoint") or "last"))
                     # the learned recipes trained on the inner split crossval's candidates are validated on
                     tr, va = d["splits"][d["learned_split"]]
+                    t_learn = time.perf_counter()
                     learned.update(train_fold_candidates(learn, out, i, tr, va, data_overrides(cfg.data, axes), axes,
                                                          budget, log=bar.write,
                                                          progress=lambda name: bar.step(f"fold {i}: {name} trained")))
@@ -122,6 +123,8 @@ def search_main(cfg) -> Dict[str, Any]:
                                   tune_seconds=sc.get("tune_seconds"), log=bar.write,
                                   progress=lambda name, i=i, seed=seed: bar.step(f"fold {i} seed {seed}: {name}"))
                 rec["recipe"] = recipe
+                if t_learn is not None:  # the fold's trainings, counted once (in its first record written)
+                    rec["learn_seconds"], t_learn = time.perf_counter() - t_learn - rec["seconds"], None
                 _write_record(out, rec)
                 done[seed] = rec
             else:
