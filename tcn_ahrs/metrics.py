@@ -70,6 +70,7 @@ Estimation", Data 6(7), 2021) — no alignment
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Dict, Optional, Tuple
 
@@ -136,8 +137,7 @@ class Yardstick:
 
     settle_s: seconds after the first valid ground-truth sample that nobody is scored on
               (the slowest default inclination correction here, VQF's ``tau_acc``, is 3 s; 2 s
-              lets a self-initialised filter converge without hiding a wrong steady state).
-    """
+              lets a self-initialised filter converge without hiding a wrong steady state)."""
 
     settle_s: float = 2.0
 
@@ -149,31 +149,22 @@ class Yardstick:
             return m
         t0 = seq.time[int(np.argmax(seq.quat_valid))]
         settled = m & (seq.time >= t0 + self.settle_s)
-        if settled.any() or not m.any():
-            return settled
-        # said, not silent: every method is scored on the settling samples of a short recording
-        import warnings
-        warnings.warn(f"{getattr(seq, 'name', 'recording')}: its ground truth ends within the yardstick's "
-                      f"{self.settle_s:g} s settle ({seq.time[m][-1] - t0:.2f} s after its first valid sample): "
-                      "every method is scored on all its samples, the settle included (not comparable with "
-                      "longer recordings)", stacklevel=2)
-        return m
+        if not settled.any() and m.any():  # a short recording: scored whole, and said, not silently
+            warnings.warn(f"{seq.name}: its ground truth ends within the yardstick's {self.settle_s:g} s settle: every "
+                          "method is scored on all its samples (not comparable with longer recordings)")
+        return settled if settled.any() else m
 
     @staticmethod
     def alignment(seq, axes: int) -> str:
-        """``"none"`` for a 9-axis estimate on data whose ground truth north is magnetic, else
-        ``"heading"``."""
-        if axes == 9 and seq.has_mag and seq.meta.get("heading_reference") == "magnetic_north":
-            return "none"
-        return "heading"
+        """``"none"`` for a 9-axis estimate on data whose ground truth north is magnetic, else ``"heading"``."""
+        return "none" if axes == 9 and seq.has_mag and seq.meta.get("heading_reference") == "magnetic_north" else "heading"
 
 
 YARDSTICK = Yardstick()
 
 
 def alignment_name(align) -> str:
-    """``"protocol"`` or the :data:`ALIGNMENTS` name of ``align`` (True/False: "first"/"none"),
-    as results.json records it."""
+    """``"protocol"`` or the :data:`ALIGNMENTS` name of ``align`` (True/False: "first"/"none"), as results.json records it."""
     return "protocol" if align == "protocol" else _alignment(align)
 
 
