@@ -47,7 +47,7 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
            "up_concentration": float(unit.mean(0).norm())}
     # the accelerometer per axis against the gravity the ground truth predicts in the body frame
     expected = so3.quat_rotate(so3.quat_conj(qv), torch.tensor([0.0, 0.0, GRAVITY], dtype=torch.float64).expand_as(a))
-    out["accel_fit"] = axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, 1e-3, saturation=False)
+    out["accel_fit"] = axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, 1e-3, saturation=False, offset=False)
     if ok.sum() < 30:
         return out
     okt = torch.as_tensor(ok)
@@ -77,12 +77,12 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
 
 
 def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: float, floor: float,
-              saturation: bool = True) -> dict:
+              saturation: bool = True, offset: bool = True) -> dict:
     """Per-axis agreement of the gyro with the ground-truth body rate, on the samples where the
     ground truth turns (w_gt faster than ``min_rate``; the gyro may read anything there):
 
     * ``gyro_to_gt`` (3, 3): least-squares map ``w_gt ≈ A w_gyro + c`` (identity when wired right;
-      ``c`` takes up a constant bias);
+      ``c``, with ``offset``, takes up a constant bias);
       ``wiring``: the signed permutation nearest to it (which gyro axis reads which body axis);
       ``det``: its determinant's sign (−1: one axis flipped or two swapped, a left-handed frame);
       ``misalignment_deg``: the angle of the rotation nearest to ``A`` (a rotated body frame);
@@ -117,11 +117,15 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
     # (an axis counts when its rate spreads by more than 10 deg/s: OxIOD's trolleys roll and
     # pitch by 6-8 deg/s of vibration, too little to fit a rotation about those axes)
     out["excited_axes"] = [k for k in range(3) if gt_spread[k] > excited]
-    # r ≈ a g + c: the offset c takes up a constant gyro bias (or an accelerometer offset), which in a
-    # map through the origin leaks into a as a false rotation (a simulated walk with a 5 deg/s bias
-    # read as a 16 deg mount)
-    sol = np.linalg.lstsq(np.column_stack([g, np.ones(len(g))]), r, rcond=None)[0]
-    a, offset = sol[:3].T, sol[3]
+    # gyro: r ≈ a g + c, the offset c takes up a constant bias, which in a map through the origin
+    # leaks into a as a false rotation (a simulated walk with a 5 deg/s bias read as a 16 deg mount).
+    # Not for the accelerometer (offset=False): gravity is its signal's constant part, which an
+    # offset would take from the map (a plugin's walk then read as miswired)
+    if offset:
+        sol = np.linalg.lstsq(np.column_stack([g, np.ones(len(g))]), r, rcond=None)[0]
+        a, offset = sol[:3].T, sol[3]
+    else:
+        a, offset = np.linalg.lstsq(g, r, rcond=None)[0].T, np.zeros(3)
     # the evidence per body axis: how much of its reference signal the fitted map explains (R²).
     # An axis whose reference is noisier than its motion (a pendulum's motion-capture rates
     # about the axes it does not swing about: |correlation| ≤ 0.58 with the gyro) is not judged:
