@@ -41,6 +41,10 @@ Blocks (:data:`BLOCKS`):
     Fine-tuning on two recordings of a device the general model never saw, ``tcn-ahrs benchmark
     finetune`` → ``runs/benchmark/finetune/finetune.json``, copied to ``docs/results/json/finetune.json``,
     rendered by :func:`tcn_ahrs.experiments.finetune.markdown`.
+``finetune_crossfit`` (docs/results.md)
+    The same benchmark with the adoption cross-fitted on the own recordings (``train.adopt_on:
+    recordings``, 2026-12-07): ``tcn-ahrs benchmark finetune 'finetune.datasets=[broad,euroc,oxiod]'
+    'finetune.modes=[gt]'`` → ``docs/results/json/finetune_crossfit.json``.
 ``rates`` (docs/results.md)
     The general models on BROAD's test trials resampled to 50-1000 Hz, ``tcn-ahrs benchmark transfer
     'transfer.ckpts={general6: checkpoints/general6.ckpt, general9: checkpoints/general9.ckpt}'
@@ -251,6 +255,8 @@ BLOCKS: Dict[str, Block] = {
     **{f"lodo{a}": Block(f"docs/results/json/lodo{a}.json", lambda result: _lodo.markdown(result), ("docs/results.md",))
        for a in (6, 9)},
     "finetune": Block("docs/results/json/finetune.json", lambda result: _finetune.markdown(result), ("docs/results.md",)),
+    "finetune_crossfit": Block("docs/results/json/finetune_crossfit.json", lambda result: _finetune.markdown(result),
+                               ("docs/results.md",)),
     "rates": Block("docs/results/json/rates.json", lambda result: _transfer.rates_markdown(result), ("docs/results.md",)),
 }
 

@@ -102,7 +102,8 @@ def finetune(data_cfgs: Mapping[str, Mapping], lodo_runs: Path, runs: Path, k: i
                       "checkpoints": ckpts, "adopted": adopted}
         print(f"finetune {name}: " + ", ".join(f"{n} {means[n]['aae_deg']:.2f}/{means[n]['inclination_deg']:.2f}"
                                                for n in list(ckpts) + [best]), flush=True)
-    result = {"finetune": rows, "k": int(k), "modes": list(modes), "overrides": list(overrides),
+    adopt_on = next((o.split("=", 1)[1] for o in overrides if o.startswith("train.adopt_on=")), "recordings")
+    result = {"finetune": rows, "k": int(k), "modes": list(modes), "overrides": list(overrides), "adopt_on": adopt_on,
               "device_check": bool(device_check)}
     write_result(out, "finetune", result, markdown(result))
     return result
@@ -132,8 +133,11 @@ def markdown(result: Mapping[str, Any]) -> str:
     lines.append(f"Mean AAE / inclination in degrees (6 axes) over the dataset's other training recordings, whole; "
                  f"the {result['k']} own recordings are the first of its first fold"
                  + ("; every method on device-checked recordings" if result.get("device_check") else "")
-                 + ". (kept the start): the later parts of the own recordings did not say the fine-tuned model "
-                 "is better, so the run shipped the general model (tcn_ahrs/training/adaptation.py).")
+                 + ". (kept the start): " + ("each own recording, left out of a fine-tuning of its own and scored whole,"
+                                            if result.get("adopt_on") == "recordings" else
+                                            "the later parts of the own recordings")
+                 + " did not say the fine-tuned model is better, so the run shipped the general model "
+                 "(tcn_ahrs/training/adaptation.py).")
     return "\n".join(lines) + "\n"
 
 
