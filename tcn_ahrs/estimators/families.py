@@ -123,6 +123,7 @@ class Calibrated:
         self.name = name or (inner.name if cal is None else f"{inner.name} +cal")
         self.axes = getattr(inner, "axes", None)
         self.heading_free = bool(getattr(inner, "heading_free", False))
+        self.ckpt_path = getattr(inner, "ckpt_path", None)  # a learned inner's checkpoint (the search's records)
 
     def run(self, seq: ImuSequence, init_quat=None, init_index: int = 0):
         return self.inner.run(seq if self.cal is None else self.cal.apply(seq), init_quat, init_index)

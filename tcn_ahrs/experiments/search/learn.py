@@ -100,22 +100,6 @@ def train_recipe(recipe: str, run_dir: Path, train: Sequence[ImuSequence], val: 
     return best
 
 
-class DeviceChecked:
-    """An estimator run on device-checked recordings (:func:`tcn_ahrs.device_check.checked`: the
-    gyro bias at rest subtracted), as ``tcn-ahrs evaluate`` runs a checkpoint trained on them."""
-
-    def __init__(self, inner, name: Optional[str] = None):
-        self.inner, self.name = inner, name or inner.name
-        self.axes = getattr(inner, "axes", None)
-        self.ckpt_path = getattr(inner, "ckpt_path", None)
-        self.heading_free = bool(getattr(inner, "heading_free", False))
-
-    def run(self, seq: ImuSequence, init_quat=None, init_index: int = 0):
-        from ...device_check import checked
-
-        return self.inner.run(checked([seq])[0], init_quat, init_index)
-
-
 def networks_off(path) -> bool:
     """Whether a residual checkpoint's inference knobs switch both networks off (``gyro_clip`` 0 and
     ``trust_weight`` 0): it runs as the backbone with its knobs, and is called that."""
@@ -128,13 +112,16 @@ def networks_off(path) -> bool:
 
 
 def learned_estimator(path, name: str):
-    """The checkpoint as the search scores it: on device-checked input where it was trained on it."""
+    """The checkpoint as the search scores it: on device-checked input where it was trained on it
+    (as ``tcn-ahrs evaluate`` runs it), through the same calibration the classical candidates use."""
     from ...checkpoint import checkpoint_meta, load_checkpoint
+    from ...device_check import RestBiasCalibration
+    from ...estimators.families import Calibrated
     from ...estimators.learned import LearnedEstimator
 
     est = LearnedEstimator(str(path), name=name)
     layout = checkpoint_meta(load_checkpoint(str(path)), str(path))["layout"]
-    return DeviceChecked(est, name) if layout.get("device_check") else est
+    return Calibrated(est, RestBiasCalibration(), name=name) if layout.get("device_check") else est
 
 
 def train_fold_candidates(recipes: Sequence[str], out: Path, fold: int, train: Sequence[ImuSequence],
