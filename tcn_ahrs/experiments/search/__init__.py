@@ -14,10 +14,12 @@ For each outer fold ``i`` of ``data.folds`` (the recordings scored, which choose
    bias; gyro matrix + accelerometer offset + magnetometer ellipsoid) fitted on the same set;
 3. the inner validation sets choose (:func:`choose`): the lowest mean AAE among the candidates
    whose inclination is within ``incl_margin`` of the best default filter's, a simpler family
-   (:data:`SIMPLICITY`) winning within ``tie_margin``; a learned family — a fold checkpoint that
-   ``tcn-ahrs crossval`` trained without fold ``i`` and without its inner fold
-   (``search.learned``: ``{family: crossval folder}``) — replaces the classical choice if it beats
-   it by the margin on that inner fold;
+   (:data:`SIMPLICITY`) winning within ``tie_margin``; a learned candidate — a recipe of
+   ``search.learn`` trained here on the first inner training set (:mod:`.learn`, within
+   ``search.budget_minutes``), or a fold checkpoint that ``tcn-ahrs crossval`` trained without fold
+   ``i`` and its inner fold (``search.learned``: ``{family: crossval folder}``) — replaces the
+   classical choice only if its gain over that split's validation recordings stands above the
+   margin plus its spread (:func:`.learn.gain_supported`);
 4. the classical candidates are fitted again on all the outer training recordings (nested
    cross-validation's refit) and scored on fold ``i``, beside the bar: every family with its
    defaults, on the raw and on the calibrated signals — all with the one yardstick
