@@ -12,6 +12,8 @@ from typing import Dict, List, Mapping, Optional
 
 import numpy as np
 
+from .device_check import stretches
+
 HEALTH_FLAGS: Dict[str, str] = {
     "gyro_frozen": "gyro frozen",
     "acc_frozen": "accelerometer frozen",
@@ -20,11 +22,6 @@ HEALTH_FLAGS: Dict[str, str] = {
     "gap": "gap",
 }
 """Signal name -> what it is called in the report."""
-
-
-def _stretches(mask: np.ndarray):
-    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.nonzero(edges == 1)[0].tolist(), np.nonzero(edges == -1)[0].tolist()))
 
 
 def health_report(time: np.ndarray, signals: Optional[Mapping[str, object]], most: int = 3) -> Optional[List[str]]:
@@ -43,7 +40,7 @@ def health_report(time: np.ndarray, signals: Optional[Mapping[str, object]], mos
         mask = np.asarray(signals[key]).reshape(-1)[: t.size] > 0.5
         if not mask.any():
             continue
-        runs = _stretches(mask)
+        runs = stretches(mask)
         if key == "gap":
             steps = np.diff(t, prepend=t[0])
             parts = [f"{steps[a]:.2f} s at {t[a] - t0:.1f} s" for a, _ in runs[:most]]

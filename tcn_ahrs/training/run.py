@@ -323,6 +323,7 @@ def _crossfit(cfg: DictConfig, run_dir: Path, dm, supervision: str, axes: int):
     if str(cfg.train.get("adopt_on", _T.adopt_on)) != "recordings":
         return None
     from ..estimators.learned import LearnedEstimator
+    from ..evaluate.files import safe_name
     from .adaptation import evidence
 
     key = lambda s: s.meta.get("recording", s.name)  # noqa: E731
@@ -335,7 +336,7 @@ def _crossfit(cfg: DictConfig, run_dir: Path, dm, supervision: str, axes: int):
     for name in names:
         sub = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
         with open_dict(sub):
-            sub.run_dir = str(run_dir / "crossfit" / _safe(name))
+            sub.run_dir = str(run_dir / "crossfit" / safe_name(name))
             sub.train.keep_if_not_better = False
             sub.eval.enabled = False
             sub.resume = (Path(sub.run_dir) / "checkpoints" / "last.ckpt").is_file()
@@ -372,10 +373,6 @@ def _whole_recordings(cfg: DictConfig, names: List[str]) -> List:
         from ..device_check import checked
         seqs = checked(seqs)
     return seqs
-
-
-def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name))
 
 
 def _keep_if_not_better(cfg: DictConfig, run_dir: Path, axes: int, dm, tuned: str, supervision: str) -> str:
