@@ -50,6 +50,11 @@ Blocks (:data:`BLOCKS`):
     'transfer.ckpts={general6: checkpoints/general6.ckpt, general9: checkpoints/general9.ckpt}'
     'transfer.datasets=[broad]' 'transfer.rates=[50,100,200,500,1000]'`` → ``rates.json``, copied to
     ``docs/results/json/rates.json``, rendered by :func:`tcn_ahrs.experiments.transfer.rates_markdown`.
+``fault_trial`` (docs/troubleshooting.md)
+    Faults in a user's recordings on BROAD clips through ``tcn-ahrs evaluate``, before and now:
+    ``python -m tcn_ahrs.bench.fault_trial B --code CHECKOUT_OF_1d5b769``, then ``python -m
+    tcn_ahrs.bench.fault_trial N --before B/fault_trial.json`` → ``N/fault_trial.json``, copied to
+    ``docs/results/json/fault_trial.json``, rendered by :func:`tcn_ahrs.bench.fault_trial.markdown`.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -71,6 +76,7 @@ if str(REPO) not in sys.path:  # this checkout's package, not another installed 
 from tcn_ahrs.experiments import lodo as _lodo  # noqa: E402
 from tcn_ahrs.experiments import finetune as _finetune  # noqa: E402
 from tcn_ahrs.experiments import transfer as _transfer  # noqa: E402
+from tcn_ahrs.bench import fault_trial as _fault_trial  # noqa: E402
 
 TRANSFER_JSON = "docs/results/json/transfer.json"
 DEPLOY_JSON = "docs/results/json/deploy.json"
@@ -258,6 +264,8 @@ BLOCKS: Dict[str, Block] = {
     "finetune_crossfit": Block("docs/results/json/finetune_crossfit.json", lambda result: _finetune.markdown(result),
                                ("docs/results.md",)),
     "rates": Block("docs/results/json/rates.json", lambda result: _transfer.rates_markdown(result), ("docs/results.md",)),
+    "fault_trial": Block("docs/results/json/fault_trial.json", lambda result: _fault_trial.markdown(result),
+                         ("docs/troubleshooting.md",)),
 }
 
 

@@ -4,15 +4,32 @@ accelerometer read against the attitude the ground truth says (what ``inspect_da
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
 
 from .conventions import GRAVITY
 
 EXCITED_RATE = 10.0 * np.pi / 180.0  # rad/s, spread of the ground-truth rate about an axis
+MIN_REPORTED_LAG_S = 0.02  # a fitted clock offset said from here (real datasets: 0-10 ms, one sample)
+MIN_LAG_SAMPLES = 200  # turning samples needed to fit a clock offset (a still clip has none to read)
 MIN_AXIS_R2 = 0.8  # share of an axis's reference signal the fitted map must explain to judge it
 
 
-def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> dict:
+def best_shift(w_gyro: np.ndarray, w_gt: np.ndarray, at: np.ndarray, most: int) -> int:
+    """The shift d (samples, |d| <= ``most``) for which the gyro's rates ``w_gyro[at + d]`` (M, 3)
+    agree best with the ground truth's ``w_gt`` (len(at), 3) (normalised correlation); 0 on a tie."""
+    best, score0 = 0, -np.inf
+    for d in sorted(range(-most, most + 1), key=abs):
+        ok = (at + d >= 0) & (at + d < len(w_gyro))
+        g, r = w_gyro[at[ok] + d], w_gt[ok]
+        score = float((g * r).sum() / max(np.sqrt((g * g).sum() * (r * r).sum()), 1e-300))
+        if score > score0 + 1e-9:
+            best, score0 = d, score
+    return best
+
+
+def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2, max_offset_s: float = 0.1) -> dict:
     """How the IMU agrees with the ground truth of ``seq`` (shown by ``inspect_data``, checked
     when a recording is built):
 
@@ -21,7 +38,9 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
       faster than ``min_rate`` rad/s (``moving`` of them); a few degrees when frames agree;
       ``angle_deg_xyzw`` the same with the quaternions read as x,y,z,w;
     * ``scale``: median |ground-truth rate| / |gyro rate| (1 in rad/s; 0.017 for deg/s);
-    * ``up``: mean direction (3,) of the specific force in the ground-truth frame (+z, ENU).
+    * ``up``: mean direction (3,) of the specific force in the ground-truth frame (+z, ENU);
+    * ``time_offset_s``: how late the ground truth's stamps run against the gyro's (fitted within
+      ``max_offset_s``; the rates compared above are aligned by it).
     ``angle_deg``/``scale`` are None when fewer than 30 samples move."""
     import torch
 
@@ -60,6 +79,23 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
         return so3.quat_log(so3.quat_mul(so3.quat_conj(qq[:-lag][okt]), qq[lag:][okt])) / span
 
     w_gt = gt_rate(q)
+    # a time offset between the IMU's and the ground truth's clocks first (a phone in a motion-capture
+    # holder: 20-30 ms, whose rates then read as a 6-10° mount rotation): the shift of the gyro's
+    # series that agrees best with the ground truth's rates; the mount is judged on what remains
+    turning = (w_gt.norm(dim=1) > min_rate).numpy()
+    shift = 0 if turning.sum() < MIN_LAG_SAMPLES else best_shift(
+        np.asarray((c[lag:] - c[:-lag]) / (t[lag:] - t[:-lag])[:, None]), w_gt.numpy()[turning],
+        np.flatnonzero(ok)[turning], max(1, int(round(max_offset_s * seq.rate))))
+    out["time_offset_s"] = -shift * float(np.median(np.diff(t)))   # > 0: the ground truth's stamps run late
+    sel = slice(None)
+    # applied from MIN_REPORTED_LAG_S: a sample or two is within the fit's own resolution (the four
+    # datasets fit 0-10 ms; a simulated 10° mount reads 1 sample and 0.3° less with it)
+    if abs(out["time_offset_s"]) >= MIN_REPORTED_LAG_S:
+        k = np.flatnonzero(ok)
+        keep = (k + shift >= 0) & (k + shift < len(c) - lag)
+        sel = torch.as_tensor(keep)
+        w_gyro = torch.as_tensor(c[lag:] - c[:-lag])[k[keep] + shift] / span[sel]
+        w_gt = w_gt[sel]
     out.update(axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE, 1e-4))  # needs only the ground truth to turn
     moving = (w_gyro.norm(dim=1) > min_rate) & (w_gt.norm(dim=1) > min_rate)
     out["moving"] = int(moving.sum())
@@ -71,7 +107,7 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2) -> d
         return float(torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0))).median())
 
     out["angle_deg"] = angle(w_gt)
-    out["angle_deg_xyzw"] = angle(gt_rate(q[:, [3, 0, 1, 2]]))
+    out["angle_deg_xyzw"] = angle(gt_rate(q[:, [3, 0, 1, 2]])[sel])
     out["scale"] = float((w_gt[moving].norm(dim=1) / w_gyro[moving].norm(dim=1)).median())
     return out
 
@@ -152,3 +188,120 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
     out["misalignment_deg"] = float(np.degrees(np.arccos(np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0))))
     out["rotation"] = rot  # C_body_from_imu nearest to the map: what gt_body_from_imu declares
     return out
+
+
+def hard_iron_fit(mag: np.ndarray) -> dict:
+    """The magnetometer's constant offset (hard iron) from the field's norm alone, no ground truth:
+    least squares of |m − h|² = r² over the recording (a sphere through the readings). ``offset``
+    (3,) µT, ``radius`` µT, ``spread_before`` / ``spread_after``: the norm's relative spread
+    (std / mean) of the raw readings and with the offset removed, ``coverage``: the smallest
+    spread of the readings' directions over an axis (0: one direction only; the offset along an
+    axis the recording never turns about is not identifiable), all None below 30 samples."""
+    m = np.asarray(mag, dtype=np.float64)
+    out = {"offset": None, "radius": None, "spread_before": None, "spread_after": None, "coverage": 0.0}
+    ok = np.linalg.norm(m, axis=1) > 0
+    m = m[ok]
+    if len(m) < 30:
+        return out
+    # |m|² = 2 m·h + (r² − |h|²): linear in (h, c)
+    sol = np.linalg.lstsq(np.column_stack([2.0 * m, np.ones(len(m))]), (m * m).sum(1), rcond=None)[0]
+    h = sol[:3]
+    r = float(np.sqrt(max(sol[3] + h @ h, 0.0)))
+    n0, n1 = np.linalg.norm(m, axis=1), np.linalg.norm(m - h, axis=1)
+    u = (m - h) / np.maximum(n1, 1e-12)[:, None]
+    out.update(offset=h, radius=r, spread_before=float(n0.std() / max(n0.mean(), 1e-12)),
+               spread_after=float(n1.std() / max(n1.mean(), 1e-12)),
+               coverage=float(np.sqrt(max(np.linalg.eigvalsh(np.cov(u.T))[0], 0.0))))
+    return out
+
+
+def mag_wiring_fit(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray, step: int = 1) -> dict:
+    """The magnetometer's axes against the ground truth: for each of the 48 signed permutations W,
+    least squares of ``R_k W^T m_k = m_nav + R_k h`` (a constant field in the navigation frame and
+    a constant body-frame offset ``h``; R_k = nav_from_body). ``residual`` {W as a tuple: RMS µT};
+    ``best``: the W that fits best, ``identity`` / ``best_rms``: the RMS of W = I and of the best,
+    ``offset``: h of W = I (µT), ``field``: m_nav of W = I."""
+    from itertools import permutations, product
+
+    import torch
+
+    from . import so3
+
+    ok = np.asarray(valid, dtype=bool) & (np.linalg.norm(mag, axis=1) > 0)
+    idx = np.flatnonzero(ok)[::max(1, step)]
+    out = {"best": None, "identity": None, "best_rms": None, "offset": None, "field": None, "n": int(idx.size)}
+    if idx.size < 30:
+        return out
+    r = so3.quat_to_matrix(torch.as_tensor(quat[idx], dtype=torch.float64)).numpy()  # (n, 3, 3) nav_from_body
+    m = np.asarray(mag, dtype=np.float64)[idx]
+    design = np.concatenate([np.broadcast_to(np.eye(3), r.shape), -r], axis=2).reshape(-1, 6)
+    fits = {}
+    for perm in permutations(range(3)):
+        for signs in product((1.0, -1.0), repeat=3):
+            w = np.zeros((3, 3))
+            w[range(3), perm] = signs                                # imu reading = W body
+            y = np.einsum("nij,nj->ni", r, m @ w).reshape(-1)        # R W^T m  (W^T m = m @ W)
+            sol, *_ = np.linalg.lstsq(design, y, rcond=None)
+            rms = float(np.sqrt(np.mean((y - design @ sol) ** 2)))
+            fits[tuple(map(tuple, w.astype(int)))] = (rms, sol)
+    eye = tuple(map(tuple, np.eye(3, dtype=int)))
+    best = min(fits, key=lambda k: fits[k][0])
+    out.update(best=np.array(best, dtype=float), identity=fits[eye][0], best_rms=fits[best][0],
+               offset=fits[eye][1][3:], field=fits[eye][1][:3])
+    return out
+
+
+def judged_hard_iron(mag: np.ndarray) -> Optional[tuple]:
+    """A magnetometer's constant offset (hard iron: a magnet or steel on the device, an uncalibrated
+    sensor) found from the field's norm alone (:func:`hard_iron_fit`): ``(offset (3,) µT, what was
+    found in words)``, or None. Judged where the recording turns about every axis, the offset is
+    large against the field (> 30 % of it) and removing it makes the norm constant (its spread
+    halved, and below 5 %) — a field that moves with the body is a disturbance the filters reject,
+    an offset is not (BROAD's attached magnets: their spread does not fall; its translation trials
+    turn too little to fit a sphere: the spread grows)."""
+    fit = hard_iron_fit(mag)
+    if fit["offset"] is None or fit["coverage"] < 0.1:
+        return None
+    h, r = fit["offset"], fit["radius"]
+    if not (fit["spread_after"] < min(0.05, 0.5 * fit["spread_before"]) and float(np.linalg.norm(h)) > 0.3 * r):
+        return None
+    hx = [round(float(v), 1) for v in h]
+    return h, (f"a constant offset of {hx} uT (hard iron: the field's norm varies by {100 * fit['spread_before']:.0f} %, "
+               f"by {100 * fit['spread_after']:.0f} % with it removed; field {r:.1f} uT)")
+
+
+def mag_wiring_problem(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray) -> Optional[str]:
+    """The magnetometer's axes against the ground truth (:func:`mag_wiring_fit`), or None: named
+    where another signed permutation of its columns keeps the field constant in the navigation
+    frame far better than the columns as given (a 3 times smaller residual, > 5 uT as given:
+    BROAD's trials fit 0.8-16 uT as given, and where one permutation is clearly best it is the
+    identity; a trial that barely turns ties several)."""
+    fit = mag_wiring_fit(mag, quat, valid, step=max(1, len(mag) // 4000))
+    if fit["best"] is None or np.array_equal(fit["best"], np.eye(3)):
+        return None
+    if not (fit["identity"] > 5.0 and fit["identity"] > 3.0 * fit["best_rms"]):
+        return None
+    w = fit["best"].astype(int)
+    hand = ", a left-handed frame (one axis negated or two swapped)" if np.linalg.det(w) < 0 else ""
+    return (f"axes wired differently from the gyro's and the ground truth's body frame{hand}: read as "
+            f"mag = {w.tolist()} body, the field stays constant in the navigation frame to {fit['best_rms']:.1f} uT, "
+            f"as wired to {fit['identity']:.1f} uT: fix the magnetometer's columns")
+
+
+def evidence_text(fit: dict) -> str:
+    """Which axes a wiring verdict rests on: ``judged x, z (R² 0.99, 0.97); not judged: y (R² 0.31)``."""
+    r2, judged = fit.get("axis_r2") or [float("nan")] * 3, set(fit.get("judged_axes") or [])
+    yes = [k for k in range(3) if k in judged]
+    no = [k for k in range(3) if k not in judged]
+    text = "judged " + ", ".join("xyz"[k] for k in yes) + " (R² " + ", ".join(f"{r2[k]:.2f}" for k in yes) + ")"
+    if no:
+        text += "; not judged (too little motion or a noisier reference): " + ", ".join(
+            f"{'xyz'[k]} (R² {r2[k]:.2f})" for k in no)
+    return text
+
+
+
+
+def lag_text(agree: dict) -> str:
+    lag = agree.get("time_offset_s") or 0.0
+    return f", after a time offset of {1000 * lag:.0f} ms fitted first" if abs(lag) >= MIN_REPORTED_LAG_S else ""

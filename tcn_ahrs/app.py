@@ -124,7 +124,8 @@ def staged_files(targets: Mapping[str, Path], write: Callable[[str, Path], None]
 
 
 @contextmanager
-def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterator[Path]:
+def staged_output(out, overwrite: bool = False, what: str = "output", landed: Optional[List[Path]] = None
+                  ) -> Iterator[Path]:
     """A run's output folder, written as a whole or not at all: the body writes into a hidden
     sibling ``.<name>.<pid>.<random>.partial`` of its own (concurrent runs with one ``out`` never
     share it; a killed run's is removed by the next run), which replaces ``out`` when the body
@@ -132,7 +133,8 @@ def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterato
     (then they are replaced, none kept beside the new ones). If another run filled ``out`` while
     this one ran, this run's folder is kept beside it as ``<out>-2`` (a warning names it): nothing
     either produced is lost. Hydra's files of the current job (``.hydra/``, its log) move into the
-    new folder."""
+    new folder. ``landed``: a list the folder the files ended up in is appended to (what the
+    command's last line names)."""
     import uuid
     import warnings
 
@@ -150,6 +152,8 @@ def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterato
         target = _free_sibling(out)
         stage.rename(target)
         warnings.warn(f"{what}: another run wrote {out} while this one ran; this run's files are in {target}")
+        if landed is not None:
+            landed.append(target)
         return
     if out.is_dir():
         old = out.parent / f".{out.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.old"
@@ -161,6 +165,8 @@ def staged_output(out, overwrite: bool = False, what: str = "output") -> Iterato
         shutil.rmtree(old)
     else:
         stage.rename(out)
+    if landed is not None:
+        landed.append(out)
 
 
 def leaf_keys(cfg, prefix: str = "") -> List[str]:

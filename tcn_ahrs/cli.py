@@ -45,7 +45,7 @@ COMMANDS: Dict[str, Command] = {
                       "nested search over estimator families (+ static calibration) for a device"),
     "reproduce": Command("reproduce", "tcn_ahrs.reproduce:reproduce_main",
                          "a navigation paper's tables (paper=...)"),
-    "inspect": Command("inspect_data", "tcn_ahrs.datasets.inspect:inspect_main",
+    "inspect": Command("inspect_data", "tcn_ahrs.evaluate.inspect:inspect_main",
                        "per-recording summary of a data split"),
 }
 

@@ -20,6 +20,7 @@ HEALTH_FLAGS: Dict[str, str] = {
     "gyro_clipped": "gyro clipped",
     "acc_clipped": "accelerometer clipped",
     "gap": "gap",
+    "mag_frozen": "magnetometer frozen",
 }
 """Signal name -> what it is called in the report."""
 
@@ -52,3 +53,12 @@ def health_report(time: np.ndarray, signals: Optional[Mapping[str, object]], mos
         more = f" (+{len(runs) - most} more)" if not key.endswith("_clipped") and len(runs) > most else ""
         out.append(f"{what} " + ", ".join(parts) + more)
     return out
+
+
+def recording_health(seq) -> List[str]:
+    """What the backbone's health checks (VQF's defaults) find in one recording's own readings (no
+    ground truth): :func:`health_report`'s phrases (``tcn-ahrs inspect`` prints them)."""
+    from .filters import backbone as bb
+
+    out = bb.run(seq.gyro, seq.accel, seq.mag, seq.dt, bb.BackboneParams())
+    return health_report(seq.time, {k: out[k] for k in bb.HEALTH_KEYS}) or []

@@ -7,12 +7,14 @@ Arrays are numpy float64 (I/O side); models and filters convert to tensors thems
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import numpy as np
 
 from .agreement import EXCITED_RATE, axis_fit, ground_truth_agreement  # noqa: F401 (re-exported)
+from .agreement import MIN_REPORTED_LAG_S, evidence_text, judged_hard_iron, lag_text, mag_wiring_problem
 from .conventions import GRAVITY, INPUT_RANGES, MAX_DT, MIN_DT
 
 
@@ -198,8 +200,6 @@ class ImuSequence:
                                "split the recording there")
         gaps = np.flatnonzero(d > max(MAX_GAP_STEPS * step, MAX_GAP_S))
         if gaps.size:
-            import warnings
-
             where_ = ", ".join(f"{d[i]:.3g} s at t = {self.time[i]:.6g} s" for i in gaps[:3])
             warnings.warn(f"{self.source}: {gaps.size} gap(s) in the IMU stream ({where_}{', …' if gaps.size > 3 else ''}): "
                           "the backbone runs across each (flagged `gap`; the gyro over it is the mean of the "
@@ -220,7 +220,15 @@ class ImuSequence:
                                    f"(median angle {agree['angle_deg']:.0f} deg) but agrees when the quaternions "
                                    f"are read as x,y,z,w ({alt:.0f} deg): the values are in x,y,z,w order (HDF5: declare "
                                    "quat_order: xyzw; CSV: name the columns by what they hold)")
+        lag = agree.get("time_offset_s") or 0.0
+        if abs(lag) >= MIN_REPORTED_LAG_S:
+            warnings.warn(f"{self.source}: the ground truth's stamps run {1000 * lag:.0f} ms late against the IMU's "
+                          f"(fitted from the rates; the wiring and mount checks judge what remains): declare "
+                          f"gt_time_offset: {lag:.4g} to align them", UserWarning, stacklevel=3)
         self._check_gyro_axes(agree)  # the specific per-axis causes before the general disagreement
+        problem = None if self.mag is None else mag_wiring_problem(self.mag, self.quat, self.quat_valid)
+        if problem:
+            self._fail("mag", problem)
         if agree.get("angle_deg") is not None and agree["angle_deg"] > 45.0:
             self._fail("quat", f"the gyro disagrees with the rate differentiated from the ground truth (median "
                                f"angle {agree['angle_deg']:.0f} deg over {agree['moving']} moving samples; "
@@ -315,8 +323,8 @@ class ImuSequence:
         if mis is not None and len(judged) == 3 and mis > MAX_MISALIGNMENT_DEG:
             rot = np.round(agree["rotation"], 4).tolist()
             self._fail("quat", f"the ground truth's body frame is rotated {mis:.1f} deg against the IMU's (fitted "
-                               f"from the rates about all three axes; {evidence}; expected < {MAX_MISALIGNMENT_DEG:g}): "
-                               f"declare gt_body_from_imu: {rot} (C_body_from_imu, rows)")
+                               f"from the rates about all three axes{lag_text(agree)}; {evidence}; expected < "
+                               f"{MAX_MISALIGNMENT_DEG:g}): declare gt_body_from_imu: {rot} (C_body_from_imu, rows)")
 
     def _array(self, name: str, a, shape) -> np.ndarray:
         try:
@@ -365,6 +373,11 @@ class ImuSequence:
             if noise > 0.05:
                 self._fail("gyro", f"expected rad/s; at rest the gyro's sample-to-sample noise is {noise:.3g}, "
                                    "typical of deg/s (rad/s gives ~0.001-0.01): convert with conventions.deg_to_rad")
+        if self.mag is not None and not np.any(self.mag):
+            # no magnetometer behind the columns: a 6-axis recording (a 9-axis model refuses it)
+            warnings.warn(f"{self.source}: field 'mag' reads 0 on every sample: no magnetometer; loaded as a "
+                          "6-axis recording", UserWarning, stacklevel=3)
+            self.mag = None
         if self.mag is not None:
             mag_norm = float(np.median(np.linalg.norm(self.mag, axis=1)))
             if mag_norm < 2.0:
@@ -373,6 +386,12 @@ class ImuSequence:
             if mag_norm > 5000.0:
                 self._fail("mag", f"expected microtesla (Earth ~25-65 uT), got median norm {mag_norm:.3g}: "
                                   "is it in nT? convert with conventions.nt_to_ut")
+            found = None if "mag_hard_iron" in (self.meta.get("declared") or {}) else judged_hard_iron(self.mag)
+            if found is not None:  # calibrated here, and said: the offset is removed, as a declaration would
+                self.mag = self.mag - found[0]
+                warnings.warn(f"{self.source}: field 'mag': {found[1]}: subtracted (declare mag_hard_iron: "
+                              f"{[round(float(v), 1) for v in found[0]]} to fix it, or [0, 0, 0] to keep the field as "
+                              "recorded)", UserWarning, stacklevel=3)
 
 
 MAX_MISALIGNMENT_DEG = 5.0  # real recordings fit 0.1-1.9 deg where all three axes turn (EuRoC, TUM VI)
@@ -391,7 +410,11 @@ def _rest_samples(accel: np.ndarray, rate: float, window_s: float = 0.5, tol: fl
     c2 = np.cumsum(np.vstack([np.zeros((1, 3)), accel**2]), axis=0)
     mean = (c[w:] - c[:-w]) / w
     var = (c2[w:] - c2[:-w]) / w - mean**2
-    still = np.sqrt(np.maximum(var, 0).sum(axis=1)) < tol * GRAVITY * 0.2
+    # a frozen accelerometer (readings repeating exactly) is not rest: a still window must change
+    # (else fast motion read as rest had the gyro's noise "typical of deg/s")
+    rep = np.concatenate([[0], np.cumsum(np.r_[False, (np.diff(accel, axis=0) == 0).all(1)])])
+    frozen = (rep[w:] - rep[:-w]) > w // 2
+    still = (np.sqrt(np.maximum(var, 0).sum(axis=1)) < tol * GRAVITY * 0.2) & ~frozen
     # A sample is at rest if any still window covers it: dilate the window starts by w
     # with a cumulative sum (no Python loop).
     starts = np.concatenate([still.astype(np.int64), np.zeros(w, dtype=np.int64)])
@@ -404,18 +427,6 @@ def _rest_samples(accel: np.ndarray, rate: float, window_s: float = 0.5, tol: fl
 def rest_mask(seq: ImuSequence, window_s: float = 0.5) -> np.ndarray:
     """(N,) bool: samples of ``seq`` at rest (almost constant accelerometer)."""
     return _rest_samples(seq.accel, seq.rate, window_s)
-
-
-def evidence_text(fit: dict) -> str:
-    """Which axes a wiring verdict rests on: ``judged x, z (R² 0.99, 0.97); not judged: y (R² 0.31)``."""
-    r2, judged = fit.get("axis_r2") or [float("nan")] * 3, set(fit.get("judged_axes") or [])
-    yes = [k for k in range(3) if k in judged]
-    no = [k for k in range(3) if k not in judged]
-    text = "judged " + ", ".join("xyz"[k] for k in yes) + " (R² " + ", ".join(f"{r2[k]:.2f}" for k in yes) + ")"
-    if no:
-        text += "; not judged (too little motion or a noisier reference): " + ", ".join(
-            f"{'xyz'[k]} (R² {r2[k]:.2f})" for k in no)
-    return text
 
 
 JITTER_TOL = 0.02  # relative spread of the steps below which a clock counts as regular

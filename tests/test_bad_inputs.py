@@ -483,11 +483,13 @@ def test_staged_output_is_all_or_nothing_and_never_mixes_runs(tmp_path):
 
 def test_concurrent_runs_with_one_out_never_share_a_staging_folder(tmp_path):
     """Two evaluates with one out= (measured: one died with "[Errno 2] ... .partial/plots/...png"):
-    each stages alone; the first to finish fills out, the other is kept beside it with a warning."""
+    each stages alone; the first to finish fills out, the other is kept beside it with a warning,
+    and says where its files are (its last line named the other run's folder before)."""
     from tcn_ahrs.app import staged_output
 
     out = tmp_path / "eval"
-    first, second = staged_output(out), staged_output(out)
+    landed_a, landed_b = [], []
+    first, second = staged_output(out, landed=landed_a), staged_output(out, landed=landed_b)
     a, b = first.__enter__(), second.__enter__()
     assert a != b and a.is_dir() and b.is_dir()
     (a / "plots").mkdir()
@@ -500,6 +502,7 @@ def test_concurrent_runs_with_one_out_never_share_a_staging_folder(tmp_path):
     assert (out / "plots" / "x.png").read_text() == "a"
     assert (tmp_path / "eval-2" / "plots" / "x.png").read_text() == "b"
     assert not list(tmp_path.glob(".eval.*"))
+    assert landed_a == [out] and landed_b == [tmp_path / "eval-2"]
 
 
 def test_export_writes_both_files_or_neither_and_refuses_to_overwrite(tmp_path, monkeypatch):

@@ -253,9 +253,11 @@ def test_a_clipped_accelerometer_is_flagged_and_not_trusted():
     out = bb.run(f.gyro, f.accel, f.mag, f.dt, params, q0=f.quat[0])
     flag = out["acc_clipped"]
     assert stuck.sum() > 20 and not (flag & ~stuck).any() and flag[stuck].mean() > 0.3
-    # not trusting the clipped readings costs nothing measurable here (1.293 vs 1.290 deg)
+    # clipped just above gravity, the readings barely err: not trusting them (nor for tau_acc after
+    # each, while the low-passed direction still holds them) costs 0.17 deg here (1.46 vs 1.29); on
+    # a real ±2 g clip it is the whole difference (test below)
     trusting = bb.run(f.gyro, f.accel, f.mag, f.dt, bb.BackboneParams(acc_clip_floor=0.0), q0=f.quat[0])
-    assert _inclination(out["quat"], f.quat).mean() <= _inclination(trusting["quat"], f.quat).mean() + 0.05
+    assert _inclination(out["quat"], f.quat).mean() <= _inclination(trusting["quat"], f.quat).mean() + 0.25
 
 
 def test_the_onnx_streaming_step_reports_the_flags(tmp_path):

@@ -215,6 +215,8 @@ def test_inspect_data_script():
     row = [ln for ln in lines if ln.startswith("dataset-room3_512_16")][0]
     assert float(row.split()[1]) == pytest.approx(141.0, abs=0.5)   # duration
     assert 28 <= int(row.split()[5]) <= 36                           # README: 31 gaps > 50 ms
+    # and what the sensors' health checks find in each recording (TUM VI: clean)
+    assert "health, dataset-room3_512_16: no fault found" in lines
 
 
 def test_split_recording_edges(generic_root):

@@ -35,6 +35,12 @@ key                   values                                 default
 ``clock``             ``stamps``, or ``nominal``: a regular  ``stamps``
                       stream whose timestamps jitter runs
                       on its uniform grid (both warn)
+``gt_time_offset``    s the ground truth's stamps run late   0
+                      against the IMU's (the wiring check
+                      fits and prints it)
+``mag_hard_iron``     the magnetometer's constant offset     none
+                      [x, y, z] µT, subtracted (the check
+                      that finds one prints it)
 ====================  =====================================  ==========
 
 converted here with :mod:`tcn_ahrs.conventions`. A sidecar key not in this table is an error
@@ -57,7 +63,8 @@ import numpy as np
 from .. import conventions as conv
 from ..config.data import GenericDeclarations
 from ..sequence import DataError, ImuSequence, clock_kind
-from ._common import check_finite, check_increasing, matrix_to_quat, open_hdf5, quat_to_matrix, read_numeric_csv
+from ._common import (check_finite, check_increasing, interpolate_quat, matrix_to_quat, open_hdf5, quat_to_matrix,
+                      read_numeric_csv)
 
 SUFFIXES = (".csv", ".h5", ".hdf5")
 AXES = ("x", "y", "z")
@@ -292,6 +299,13 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     mag = None
     if a["mag"] is not None:
         mag = _convert(src, "mag_unit", attrs.get("mag_unit", _DECL.mag_unit), _MAG)(check_finite(src, "mag", a["mag"]))
+        hard_iron = attrs.get("mag_hard_iron", _DECL.mag_hard_iron)
+        if hard_iron is not None:
+            try:
+                h = np.asarray(hard_iron, dtype=np.float64).reshape(3)
+            except (TypeError, ValueError):
+                raise DataError(src, "mag_hard_iron", f"expected [x, y, z] in uT, got {hard_iron!r}") from None
+            mag = mag - h
     quat = valid = None
     if a["quat"] is not None:
         quat = np.asarray(a["quat"], dtype=np.float64)
@@ -311,6 +325,15 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
             q = quat.copy()
             q[valid] = matrix_to_quat(r)
             quat = q
+    offset = attrs.get("gt_time_offset", _DECL.gt_time_offset)
+    if quat is not None and offset:
+        try:
+            offset = float(offset)
+        except (TypeError, ValueError):
+            raise DataError(src, "gt_time_offset", f"expected seconds, got {offset!r}") from None
+        # stamp t holds the attitude at IMU time t - offset: resampled onto the IMU's stamps
+        step = float(np.median(np.diff(t)))
+        quat, valid = interpolate_quat(t - offset, quat, t, 2.0 * step, 4.0 * step)
     score = None
     if a["score"] is not None:
         s = np.asarray(a["score"]).reshape(-1)

@@ -52,7 +52,7 @@ class Backbone(ClassicalEstimator):
         g, a, d, q = (x.cpu().numpy() for x in (gyro, accel, dt, q0))
         m = None if mag is None else mag.cpu().numpy()
         extra = dict(p.get("extra") or {})
-        health = ("gyro_frozen", "acc_frozen", "gyro_clipped", "acc_clipped", "gap")
+        health = bb.HEALTH_KEYS
         quat, bias, rest, dist = [], [], [], []
         flags = {k: [] for k in health}
         for k in range(n_sets * r):

@@ -10,6 +10,7 @@ import torch
 
 from .. import so3
 from ..conventions import NETWORK_DTYPE, STATE_DTYPE
+from ..filters.backbone import HEALTH_KEYS
 from ..checkpoint import CheckpointError, model_from_checkpoint
 from ..filters.common import heading_ref_for
 from ..model.ahrs import LearnedAHRS
@@ -146,6 +147,9 @@ class LearnedEstimator:
         }
         if "mag_error" in out:
             sig["mag_error"] = out["mag_error"][0].cpu().double().numpy()
+        # the health flags of the filter it runs (the backbone's, or the closed loop's frozen/gap
+        # checks): tcn-ahrs evaluate names what they found
+        sig.update({k: out[k][0].cpu().numpy() > 0.5 for k in HEALTH_KEYS if k in out})
         if "gyro_bias" in out:  # closed loop: states from `start` on
             n0 = len(seq) - out["gyro_bias"].shape[1]
             b = np.zeros((len(seq), 3))

@@ -160,13 +160,15 @@ def _run(cfg: DictConfig, learned, seqs, refused, axes: int, out: str) -> Dict[s
                          f"'{cfg.data.split}' (root {cfg.data.get('root')})" + (f"; refused:{why}" if refused else ""))
     load_plugins(cfg.get("plugins"))
     estimators = [learned] + baseline_estimators(["raw"] + list(cfg.get("baselines") or []), axes)
-    with staged_output(out, bool(cfg.get("overwrite", _D.overwrite)), "evaluate") as stage:
+    landed: list = []
+    with staged_output(out, bool(cfg.get("overwrite", _D.overwrite)), "evaluate", landed) as stage:
         res = evaluate(estimators, seqs, out_dir=stage, axes=axes, dataset=str(cfg.data.name),
                        plots=bool(cfg.get("plots", _D.plots)),
                        trajectories=bool(cfg.get("trajectories", _D.trajectories)),
                        align=cfg.get("align", _D.align))
         if refused:
             (stage / "refused.txt").write_text("".join(f"{name}: {reason}\n" for name, reason in refused))
+    out = str(landed[0])  # <out>-2 where a concurrent run filled <out> meanwhile
     print(f"results in {out}")
     print_table(res)
     print_health(res)

@@ -354,6 +354,9 @@ def compare_main(cfg, allowed_keys=COMPARE_KEYS, kind: str = "compare") -> dict:
                          "config": plain(cfg), "load_s": round(load_s, 2)})
     print(f"results in {out}")
     print(average_rows(res))
+    from ..evaluate.main import print_health
+
+    print_health(res)
     return res
 
 

@@ -277,8 +277,12 @@ class BackboneGraph(nn.Module):
         gq = torch.where(turn, q / torch.sqrt((q * q).sum()), gq)
         w.add(list(range(K.S_GQ, K.S_GQ + 4)), gq)
         # ---- accelerometer (kernel: acc_update)
-        acc_trust = torch.where(frozen_a | clipped[1], 0.0, acc_trust)
-        bias_trust = torch.where(frozen_a | frozen_g, 0.0, bias_trust)
+        wait_a = s[K.S_ADISTRUST]   # not trusted for tau_acc after a clipped sample (kernel: acc_update)
+        wait_a = torch.where(clipped[1], p[K.P_TAU_ACC], torch.where(wait_a > 0.0, wait_a - dt, wait_a))
+        w.add([K.S_ADISTRUST], wait_a.reshape(1))
+        distrust = frozen_a | clipped[1] | (wait_a > 0.0)
+        acc_trust = torch.where(distrust, 0.0, acc_trust)
+        bias_trust = torch.where(distrust | frozen_g, 0.0, bias_trust)
         rest1, rest_t1 = rest, rest_t
         if self.rest_bias:
             da = acc - lr[3:6]
@@ -286,7 +290,7 @@ class BackboneGraph(nn.Module):
             rest_t = torch.where(still, rest_t + dt, 0.0)
             rest = torch.where(still, torch.where(rest_t >= p[K.P_REST_MIN_T], 1.0, rest), 0.0)
         # the accelerometer in I_i, low-passed there, then in E_i, normalised (Sec. 3.2)
-        f = self.lowpass("acc", s, self.rot(gq) @ acc, rows, dt, gap, w)
+        f = self.lowpass("acc", s, self.rot(gq) @ acc, rows, dt, gap | frozen_a, w)  # no frozen reading kept
         aq = s[K.S_AQ:K.S_AQ + 4]
         v = self.rot(aq) @ f
         v = v / torch.sqrt((v * v).sum() + 1e-300)
@@ -328,6 +332,14 @@ class BackboneGraph(nn.Module):
         w.add([K.S_REST, K.S_REST_T], torch.where(skip_acc, torch.stack([rest1, rest_t1]), torch.stack([rest, rest_t])),
               )
         if self.use_mag:
+            # a frozen magnetometer is not trusted (kernel: mag_update)
+            same_m = (mag == s[K.S_MPREV:K.S_MPREV + 3]).all()
+            mt = torch.where(same_m, s[K.S_MSAME_T] + dt, 0.0)
+            ft = p[K.P_FROZEN_T]
+            mfrozen = (mt >= max(ft, K.MAG_FROZEN_MIN_T)) if ft > 0.0 else self.false
+            w.add([K.S_MPREV + i for i in range(3)] + [K.S_MSAME_T, K.S_MFROZEN],
+                  torch.cat([mag, mt.reshape(1), mfrozen.to(F64).reshape(1)]))
+            mag_trust = torch.where(mfrozen, 0.0, mag_trust)
             if self.mag_lp:
                 nd = ya[-2:]
             kminit = self._mag_update(s, heading, nd if self.mag_rej else None, rest_g, kminit, gains, mag_trust,

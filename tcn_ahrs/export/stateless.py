@@ -252,7 +252,7 @@ def state_spec(step: ResidualStep) -> Dict[str, object]:
 # the backbone's flags (sensor health among them) and where its state holds them
 STATE_FLAGS = {"rest": K.S_REST, "mag_disturbed": K.S_MAGDIST, "gyro_frozen": K.S_GFROZEN,
                "acc_frozen": K.S_AFROZEN, "gyro_clipped": K.S_GCLIPPED, "acc_clipped": K.S_ACLIPPED,
-               "gap": K.S_GAP}
+               "gap": K.S_GAP, "mag_frozen": K.S_MFROZEN}
 
 
 def initial_state(spec: Dict, q0):

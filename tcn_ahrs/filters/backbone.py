@@ -52,6 +52,7 @@ def _loop(p, s, gyr, acc, mag, dt, ta, tm, tb, use_mag, q_out, bias_out, flags_o
         flags_out[i, 0], flags_out[i, 1], flags_out[i, 2] = s[_S_REST], s[_S_MAGDIST], s[_S_DELTA]
         flags_out[i, 3], flags_out[i, 4] = s[_S_GFROZEN], s[_S_AFROZEN]
         flags_out[i, 5], flags_out[i, 6], flags_out[i, 7] = s[_S_GCLIPPED], s[_S_ACLIPPED], s[_S_GAP]
+        flags_out[i, 8] = s[_S_MFROZEN]
 
 
 _coefficients, _gyro_update, _acc_update, _mag_update, _quat6, _quat9 = (
@@ -59,7 +60,12 @@ _coefficients, _gyro_update, _acc_update, _mag_update, _quat6, _quat9 = (
 _S_BIAS, _S_REST, _S_MAGDIST, _S_DELTA = K.S_BIAS, K.S_REST, K.S_MAGDIST, K.S_DELTA
 _S_GFROZEN, _S_AFROZEN, _S_GCLIPPED, _S_ACLIPPED, _S_GAP = (K.S_GFROZEN, K.S_AFROZEN, K.S_GCLIPPED,
                                                          K.S_ACLIPPED, K.S_GAP)
+_S_MFROZEN = K.S_MFROZEN
 _loop = K.ops.jit(_loop)
+
+
+HEALTH_KEYS = ("gyro_frozen", "acc_frozen", "gyro_clipped", "acc_clipped", "gap", "mag_frozen")
+"""The sensors' health flags :func:`run` returns (N,) bool (tcn_ahrs.health names them in words)."""
 
 
 def start_state(params: BackboneParams, q0: Optional[np.ndarray] = None) -> np.ndarray:
@@ -95,11 +101,12 @@ def run(gyro: np.ndarray, acc: np.ndarray, mag: Optional[np.ndarray], dt: np.nda
     s = start_state(params, q0) if state is None else state
     if bias0 is not None:
         s[K.S_BIAS:K.S_BIAS + 3] = np.asarray(bias0, dtype=np.float64).reshape(3)
-    q, b, flags = np.empty((n, 4)), np.empty((n, 3)), np.empty((n, 8))
+    q, b, flags = np.empty((n, 4)), np.empty((n, 3)), np.empty((n, 9))
     _loop(np.asarray(params.vector()), s, gyro, acc, mag, dt, ta, tm, tb, use_mag, q, b, flags)
     return {"quat": q, "gyro_bias": b, "rest": flags[:, 0] > 0.5, "mag_disturbed": flags[:, 1] > 0.5,
             "delta": flags[:, 2], "gyro_frozen": flags[:, 3] > 0.5, "acc_frozen": flags[:, 4] > 0.5,
-            "gyro_clipped": flags[:, 5] > 0.5, "acc_clipped": flags[:, 6] > 0.5, "gap": flags[:, 7] > 0.5}
+            "gyro_clipped": flags[:, 5] > 0.5, "acc_clipped": flags[:, 6] > 0.5, "gap": flags[:, 7] > 0.5,
+            "mag_frozen": flags[:, 8] > 0.5}
 
 
 # ----------------------------------------------------------------------------- tensor scan

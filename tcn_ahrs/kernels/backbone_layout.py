@@ -2,6 +2,12 @@
 coefficients), as named indices: what :mod:`tcn_ahrs.kernels.backbone`'s step reads as constants
 (numba and TorchScript take module-level ints as compile-time constants) and what its callers
 use to read a state (``S_BIAS``, ``N_STATE``, ...).
+
+Deliberate differences of the step from ``vqf`` (tests/test_backbone.py holds the rest equal to
+it): the time step may change from sample to sample (coefficients recomputed, filter states kept);
+the inclination correction is written with its angle (atan2), to be scaled (trust 1: ``vqf``'s to
+round-off); the start may be a given attitude; the sensors' health is checked (frozen, clipped,
+gaps: :class:`BackboneParams`; a frozen magnetometer: :data:`MAG_FROZEN_MIN_T`).
 """
 from __future__ import annotations
 
@@ -94,7 +100,8 @@ STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("
                  ("gyr_prev", 3), ("gyr_same_time", 1), ("gyr_same_count", 1), ("gyr_frozen", 1),
                  ("acc_prev", 3), ("acc_same_time", 1), ("acc_same_count", 1), ("acc_frozen", 1),
                  ("gyr_max_abs", 3), ("gyr_clip_run", 3), ("gyr_clipped", 1), ("acc_max_abs", 3), ("acc_clip_run", 3),
-                 ("acc_clipped", 1), ("ts_typical", 1), ("gap", 1), ("heading_restart_in", 1)]
+                 ("acc_clipped", 1), ("ts_typical", 1), ("gap", 1), ("heading_restart_in", 1),
+                 ("acc_distrust_in", 1), ("mag_prev", 3), ("mag_same_time", 1), ("mag_frozen", 1)]
                 + [(n, 2 + 4 * d) for n, d in _FILTERS])
 COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
                  ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
@@ -132,6 +139,11 @@ P_FROZEN_T = _P["frozen_time"]
 S_GMAX, S_GCLIPPED, S_AMAX, S_ACLIPPED = _S["gyr_max_abs"], _S["gyr_clipped"], _S["acc_max_abs"], _S["acc_clipped"]
 P_GCLIP_FLOOR, P_ACLIP_FLOOR = _P["gyro_clip_floor"], _P["acc_clip_floor"]
 S_TS_TYP, S_GAP, P_GAP_F, S_HEAD_RESTART = _S["ts_typical"], _S["gap"], _P["gap_factor"], _S["heading_restart_in"]
+S_ADISTRUST = _S["acc_distrust_in"]
+S_MPREV, S_MSAME_T, S_MFROZEN = _S["mag_prev"], _S["mag_same_time"], _S["mag_frozen"]
+MAG_FROZEN_MIN_T = 0.5  # s: a magnetometer repeats its readings exactly this long, at least, to be frozen
+# (slower than the IMU, a magnetometer's readings are held: a 10 Hz one in a 100 Hz stream repeats for 0.1 s;
+# the longest exact repeat in BROAD and OxIOD is 8 samples, 28 ms)
 CLIP_MIN_REPEATS = 4.0  # an axis at its extreme this many times in a row (a smooth, quantised peak
 # repeats its value once or twice: BROAD's gyro did at 2.9 rad/s)
 FROZEN_MIN_SAMPLES = 10.0  # and at least this many repeated samples (a slow IMU's 0.1 s is few)

@@ -22,7 +22,7 @@ from typing import Dict
 VECTORS = frozenset({"s", "p", "c"})          # state, parameters, coefficients: List[float]
 # flat indices and counts
 INTS = frozenset({"f", "d", "i", "at_b", "at_a", "prev", "same_t", "same_n", "flag", "maxabs", "clipflag"})
-BOOLS = frozenset({"run", "start", "use_mag"})
+BOOLS = frozenset({"run", "start", "use_mag", "held"})
 # modules of typed scalar kernels (annotated for TorchScript) an ops-table kernel may bind
 TYPED_MODULES = frozenset({"tcn_ahrs.kernels.quat"})
 

@@ -29,6 +29,7 @@ from torch import Tensor, nn
 
 from .. import so3
 from ..conventions import STATE_DTYPE
+from ..filters.backbone import HEALTH_KEYS
 from .calibration import Calibration
 from .closed_loop import ClosedLoopFilter
 from .open_loop import OpenLoopECF
@@ -260,6 +261,8 @@ class LearnedAHRS(nn.Module):
         out["omega"] = cal["gyro"]
         out["gyro_bias"] = res["gyro_bias"].to(imu.device)[None]
         out["rest"] = torch.cat([torch.zeros(start, dtype=torch.float64), res["rest"]])[None].to(imu.device)
+        for k in HEALTH_KEYS:  # from `start` on; nothing flagged before
+            out[k] = torch.cat([torch.zeros(start, dtype=torch.bool), res[k]])[None].to(imu.device)
         for k in ("acc_trust", "mag_trust"):
             out[k] = res[k].to(imu.device)
         return out

@@ -163,5 +163,7 @@ class BackboneLoop(nn.Module):
             quat = so3.quat_mul(so3.quat_conj(m_from_n).expand_as(quat), quat)
         res = {"quat": quat, "gyro_bias": torch.as_tensor(out["gyro_bias"]),
                "rest": torch.as_tensor(out["rest"], dtype=torch.float64)}
+        # the sensors' health flags (frozen, clipped, gap), as the backbone estimator returns them
+        res.update({k: torch.as_tensor(out[k]) for k in bb.HEALTH_KEYS})
         res.update(tr)
         return res

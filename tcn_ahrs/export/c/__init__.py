@@ -37,7 +37,8 @@ three readings repeated exactly for ``frozen_time``: a frozen gyro is not integr
 accelerometer not trusted), ``NAME_FLAG_GYRO_CLIPPED`` / ``NAME_FLAG_ACC_CLIPPED`` (an axis repeats
 its largest magnitude so far above the clip floor: saturated; a clipped accelerometer is not trusted),
 ``NAME_FLAG_GAP`` (``dt`` over ``gap_factor`` × the typical step: samples were lost; the gyro is
-not integrated over it). The backbone's scalar type is ``TCN_AHRS_REAL`` (float by default;
+not integrated over it), ``NAME_FLAG_MAG_FROZEN`` (the magnetometer's readings repeated exactly for
+``frozen_time`` and 0.5 s: not trusted). The backbone's scalar type is ``TCN_AHRS_REAL`` (float by default;
 ``-DTCN_AHRS_REAL=double`` for a double build); its low-pass filters, their coefficients and the
 heading update compute in double in both (``runtime.WIDE_KERNELS``), the networks in float32.
 """

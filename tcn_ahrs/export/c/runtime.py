@@ -164,7 +164,7 @@ def generate_c(model: nn.Module, name: str) -> Dict[str, Any]:
         "BIAS_SCALE": repr(float(loop.bias_trust_scale)), "BIAS_POWER": repr(float(loop.bias_trust_power)),
         "S_GQ": str(K.S_GQ), "S_BIAS": str(K.S_BIAS), "S_REST": str(K.S_REST), "S_MAGDIST": str(K.S_MAGDIST),
         "S_GFROZEN": str(K.S_GFROZEN), "S_AFROZEN": str(K.S_AFROZEN), "S_GCLIPPED": str(K.S_GCLIPPED),
-        "S_ACLIPPED": str(K.S_ACLIPPED), "S_GAP": str(K.S_GAP),
+        "S_ACLIPPED": str(K.S_ACLIPPED), "S_GAP": str(K.S_GAP), "S_MFROZEN": str(K.S_MFROZEN),
         "KERNELS": kernels,
     }
 

@@ -1,0 +1,246 @@
+"""The fault trial: faults a new user's recordings carry, injected into clips of real BROAD
+recordings (training trials) and run through ``tcn-ahrs evaluate`` exactly as a user would run it
+(generic files, the shipped ``broad9`` / ``broad6`` models, VQF and raw integration beside them).
+
+``python -m tcn_ahrs.bench.fault_trial OUT [--code DIR]`` writes ``OUT/fault_trial.json``: per case
+what the command did — refused (its message) or ran (AAE per method, the health lines it printed,
+a window error where the case names one). ``--code DIR`` runs another checkout's code (its
+``tcn_ahrs`` first on ``PYTHONPATH``): the "before" column of docs/troubleshooting.md's fault
+table is this file run against the commit before issue 47 (``1d5b769``), "now" against the tree.
+``python scripts/results_tables.py`` renders the table from both JSON files.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import numpy as np
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "datasets" / "broad"
+CLIP_S, LEAD_S, FAULT_AT = 45.0, 5.0, 15.0  # clip length, rest before the motion, fault start (s into the clip)
+CLIPS = {"slow": "02_undisturbed_slow_rotation_B", "fast": "08_undisturbed_fast_rotation_with_breaks_A",
+         "translation": "18_undisturbed_fast_translation_with_breaks_B"}
+
+
+def _clip(root: Path, name: str) -> Dict[str, np.ndarray]:
+    from ..datasets import loader
+
+    seq = loader("broad").load_recording(root, name)
+    k0 = max(0, int(np.argmax(seq.score_mask)) - int(LEAD_S * seq.rate))
+    k1 = k0 + int(CLIP_S * seq.rate)
+    return {"t": seq.time[k0:k1] - seq.time[k0], "gyr": seq.gyro[k0:k1], "acc": seq.accel[k0:k1],
+            "mag": seq.mag[k0:k1], "quat": seq.quat[k0:k1]}
+
+
+def _window(a: Dict[str, np.ndarray], seconds: float, start: float = FAULT_AT) -> slice:
+    t = a["t"]
+    return slice(int(np.searchsorted(t, start)), int(np.searchsorted(t, start + seconds)))
+
+
+def _frozen(key: str, seconds: float = 5.0):
+    def f(a):
+        w = _window(a, seconds)
+        a[key][w] = a[key][w.start]
+        return a
+    return f
+
+
+def _mag_swap(a):
+    a["mag"] = a["mag"][:, [1, 0, 2]]
+    return a
+
+
+def _hard_iron(a):
+    a["mag"] = a["mag"] + np.array([150.0, -80.0, 60.0])
+    return a
+
+
+def _saturate(a):
+    a["acc"] = np.clip(a["acc"], -19.6133, 19.6133)  # a ±2 g accelerometer
+    return a
+
+
+def _zero_mag(a):
+    a["mag"] = np.zeros_like(a["mag"])
+    return a
+
+
+def _short(a):
+    n = int(np.searchsorted(a["t"], 0.5))
+    return {k: v[:n] for k, v in a.items()}
+
+
+def _lag(seconds: float):
+    def f(a):
+        from ..datasets._common import interpolate_quat
+
+        # the ground truth stamped `seconds` late (a clock offset between the IMU and motion capture)
+        q, ok = interpolate_quat(a["t"] + seconds, a["quat"], a["t"], 0.05, 0.1)
+        a["quat"] = q  # NaN where the shifted ground truth does not reach: masked, not invented
+        return a
+    return f
+
+
+def _declared(inject, **attrs):
+    def f(a):
+        a = inject(a)
+        a["_attrs"] = attrs  # HDF5 root attributes: the generic format's declarations
+        return a
+    return f
+
+
+# case -> (clip, injector, ckpt, extra overrides, window metric: (what, seconds after the fault ends, length))
+CASES: Dict[str, tuple] = {
+    "clean (fast rotation)": ("fast", None, "broad9", [], ("inclination", 5.0, 1.0)),
+    "clean (slow rotation)": ("slow", None, "broad9", [], ("inclination", 5.0, 1.0)),
+    "magnetometer x and y swapped": ("slow", _mag_swap, "broad9", [], None),
+    "hard iron +150 / −80 / +60 µT": ("slow", _hard_iron, "broad9", [], None),
+    "magnetometer frozen 5 s": ("fast", _frozen("mag"), "broad9", [], ("heading", 4.0, 4.0)),
+    "accelerometer saturating at ±2 g (fast translation)": ("translation", _saturate, "broad9", [], None),
+    "clean (fast translation)": ("translation", None, "broad9", [], None),
+    "accelerometer frozen 5 s": ("slow", _frozen("acc"), "broad9", [], ("inclination", 5.0, 1.0)),
+    "accelerometer frozen 5 s in fast motion": ("fast", _frozen("acc"), "broad9", [], ("inclination", 5.0, 1.0)),
+    "all-zero magnetometer, 6-axis model": ("slow", _zero_mag, "broad6", ["data.axes=6"], None),
+    "a 0.5 s recording": ("slow", _short, "broad9", [], None),
+    "ground truth 30 ms late": ("fast", _lag(0.03), "broad9", [], None),
+    "ground truth 30 ms late, gt_time_offset: 0.03 declared": ("fast", _declared(_lag(0.03), gt_time_offset=0.03),
+                                                                 "broad9", [], None),
+    "all-zero magnetometer, 9-axis model": ("slow", _zero_mag, "broad9", [], None),
+    "gyro frozen 5 s (fast motion)": ("fast", _frozen("gyr"), "broad9", [], ("heading", 4.0, 4.0)),
+}
+
+
+def _write(path: Path, a: Dict[str, np.ndarray]) -> None:
+    import h5py
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with h5py.File(path, "w") as f:
+        for k, v in a.items():
+            if k == "_attrs":
+                f.attrs.update(v)
+            else:
+                f[k] = v
+
+
+def _errors(traj: Path, a: Dict[str, np.ndarray], what: str, after: float, length: float) -> Optional[float]:
+    from ..metrics import broad_error_angles
+
+    if not traj.is_file():
+        return None
+    d = np.loadtxt(traj, ndmin=2)
+    quat = d[:, [7, 4, 5, 6]]  # TUM: t x y z qx qy qz qw
+    end = FAULT_AT + 5.0
+    w = _window(a, length, end + after)
+    angles = broad_error_angles(a["quat"][w], quat[w])
+    return float(np.degrees(np.abs(angles[what])).mean())
+
+
+def run_case(name: str, code: Optional[Path], work: Path, root: Path = SHARED) -> dict:
+    clip, inject, ckpt, extra, metric = CASES[name]
+    a = _clip(root, CLIPS[clip])
+    if inject is not None:
+        a = inject({k: v.copy() for k, v in a.items()})
+    data = work / "data" / f"case{list(CASES).index(name):02d}"
+    _write(data / f"{CLIPS[clip][:2]}_clip.h5", a)
+    out = work / "out" / data.name
+    ckpt_path = Path(__file__).resolve().parents[2] / "checkpoints" / f"{ckpt}.ckpt"
+    cmd = [sys.executable, "-m", "tcn_ahrs", "evaluate", "data=generic", f"data.root={data}", f"ckpt={ckpt_path}",
+           "data.split=all", "baselines=[vqf]", f"out={out}", "plots=false", *extra]
+    env = dict(os.environ)
+    if code is not None:
+        env["PYTHONPATH"] = str(code) + os.pathsep + env.get("PYTHONPATH", "")
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(code or Path.cwd()))
+    said, keep = [], False
+    for ln in (p.stdout + p.stderr).splitlines():
+        # what the command says (its reasons for a refusal follow the error line, indented)
+        keep = ln.startswith(("error", "health", "warning", "note", "device check")) or "Warning:" in ln or (
+            keep and ln.startswith("  ") and said[-1].startswith("error"))
+        if keep:
+            said.append(ln.strip())
+    row = {"case": name, "status": p.returncode, "said": said}
+    res = out / "results.json"
+    if res.is_file():
+        r = json.loads(res.read_text())
+        row["aae"] = {m: v["recordings"][0].get("aae_deg") for m, v in r["methods"].items()}
+        if metric is not None:
+            what, after, length = metric
+            row["window"] = {"what": what, "after_s": after, "length_s": length}
+            for m in r["methods"]:
+                from ..evaluate.files import safe_name
+
+                traj = out / "trajectories" / safe_name(m) / f"{safe_name(r['recordings'][0])}.txt"
+                row["window"][m] = _errors(traj, a, what, after, length)
+    return row
+
+
+def _cell(row: Optional[dict], method: Optional[str] = None) -> str:
+    """What one run did, for the table: refused (its reason, abridged) or the AAE (and the case's
+    window error) with what the command said about the fault."""
+    if row is None:
+        return "–"
+    if row["status"] != 0:
+        why = next((s for s in row["said"] if "field '" in s or s.startswith("error") and "no recordings" not in s), "")
+        why = why[why.find("field '"):] if "field '" in why else why
+        return "refused: " + (why[:150] + "…" if len(why) > 150 else why).replace("|", "\\|")
+    aae = row.get("aae") or {}
+    m = method or next(iter(aae))
+    text = f"{aae[m]:.2f}°"
+    win = row.get("window") or {}
+    if win.get(m) is not None:
+        text += f" ({win['what']} {win['after_s']:g}–{win['after_s'] + win['length_s']:g} s after: {win[m]:.2f}°)"
+    if method is None:
+        said = [s.split(": ", 1)[1] if s.startswith("health") else s.split("UserWarning: ", 1)[-1]
+                for s in row["said"] if s.startswith("health") or "UserWarning" in s]
+        said = [s.split(": ", 1)[1] if s.startswith("/") and ": " in s else s for s in said]
+        text += "; says: " + ("; ".join(x[:110] for x in said) if said else "nothing")
+    return text
+
+
+def markdown(result: dict) -> str:
+    """The fault table of docs/troubleshooting.md: per case the shipped model before (the commit the
+    issue was read at) and now, and VQF now (VQF's code did not change), from ``fault_trial.json``."""
+    before = {r["case"]: r for r in (result.get("before") or {}).get("cases", [])}
+    lines = ["| fault (BROAD clip, `tcn-ahrs evaluate ckpt=broad9`) | before | now | VQF |", "|---|---|---|---|"]
+    for row in result["cases"]:
+        # VQF on the faulty clip (its code is the same before and now; refused now, it ran before)
+        ran = row if row.get("aae") else before.get(row["case"]) or {}
+        vqf = next((m for m in (ran.get("aae") or {}) if m.startswith("vqf")), None)
+        lines.append(f"| {row['case']} | {_cell(before.get(row['case']))} | {_cell(row)} | "
+                     f"{_cell(ran, vqf) if vqf else '–'} |")
+    lines += ["", "AAE over the clip (the yardstick, degrees); in brackets the case's window error (no "
+                  "alignment; the fault from 15 s to 20 s of the 45 s clip); \"says\": the warnings and health "
+                  "lines the command printed. Commands: " + result.get("command", "")]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Optional[List[str]] = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("out")
+    ap.add_argument("--code", default=None, help="another checkout whose tcn_ahrs runs the commands")
+    ap.add_argument("--cases", nargs="*", default=None)
+    ap.add_argument("--before", default=None, help="an earlier run's fault_trial.json: kept as its 'before'")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.cases or list(CASES):
+            row = run_case(name, Path(args.code).resolve() if args.code else None, Path(tmp))
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    result = {"code": args.code or "tree", "cases": rows,
+              "command": ("`python -m tcn_ahrs.bench.fault_trial DIR` on the tree (now) and with `--code` on a "
+                          "checkout of the commit before issue 47 (before, 1d5b769)")}
+    if args.before:
+        result["before"] = json.loads(Path(args.before).read_text())
+    (out / "fault_trial.json").write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
