@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -179,20 +180,26 @@ def run_case(name: str, code: Optional[Path], work: Path, root: Path = SHARED) -
     return row
 
 
-def _cell(row: Optional[dict], method: Optional[str] = None) -> str:
+def _cell(row: Optional[dict], method: Optional[str] = None, now: Optional[dict] = None) -> str:
     """What one run did, for the table: refused (its reason, abridged) or the AAE (and the case's
-    window error) with what the command said about the fault."""
+    window error, where ``now``'s row reads one too) with what the command said about the fault."""
     if row is None:
         return "–"
     if row["status"] != 0:
-        why = next((s for s in row["said"] if "field '" in s or s.startswith("error") and "no recordings" not in s), "")
+        said = row["said"]
+        # the command's own error, or the per-recording reason listed under "no recordings … refused:"
+        why = next((s for s in said if s.startswith("error") and "no recordings" not in s), None)
+        if why is None:
+            at = next((i for i, s in enumerate(said) if s.startswith("error")), len(said))
+            why = next((s for s in said[at + 1:] if "Warning" not in s), "")
         why = why[why.find("field '"):] if "field '" in why else why
+        why = re.sub(r"/\S*/checkpoints/", "checkpoints/", why)  # no machine's folders in the table
         return "refused: " + (why[:150] + "…" if len(why) > 150 else why).replace("|", "\\|")
     aae = row.get("aae") or {}
     m = method or next(iter(aae))
     text = f"{aae[m]:.2f}°"
     win = row.get("window") or {}
-    if win.get(m) is not None:
+    if win.get(m) is not None and (now is None or now.get("window")):
         text += f" ({win['what']} {win['after_s']:g}–{win['after_s'] + win['length_s']:g} s after: {win[m]:.2f}°)"
     if method is None:
         said = [s.split(": ", 1)[1] if s.startswith("health") else s.split("UserWarning: ", 1)[-1]
@@ -211,7 +218,7 @@ def markdown(result: dict) -> str:
         # VQF on the faulty clip (its code is the same before and now; refused now, it ran before)
         ran = row if row.get("aae") else before.get(row["case"]) or {}
         vqf = next((m for m in (ran.get("aae") or {}) if m.startswith("vqf")), None)
-        lines.append(f"| {row['case']} | {_cell(before.get(row['case']))} | {_cell(row)} | "
+        lines.append(f"| {row['case']} | {_cell(before.get(row['case']), now=row)} | {_cell(row)} | "
                      f"{_cell(ran, vqf) if vqf else '–'} |")
     lines += ["", "AAE over the clip (the yardstick, degrees); in brackets the case's window error (no "
                   "alignment; the fault from 15 s to 20 s of the 45 s clip); \"says\": the warnings and health "
