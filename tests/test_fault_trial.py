@@ -225,3 +225,26 @@ def test_the_fault_trial_writes_a_row_per_case(tmp_path):
     assert row["window"]["Learned AHRS"] < row["window"]["vqf9d"]
     with h5py.File(next((tmp_path / "data").rglob("*.h5")), "r") as f:
         assert set(f) == {"t", "gyr", "acc", "mag", "quat"}
+
+
+@needs_broad
+def test_a_learned_models_run_returns_the_health_flags():
+    """broad9 (the residual's backbone) on BROAD's fast rotation with the gyro frozen 5 s: before,
+    its run carried no flags and evaluate printed nothing for it."""
+    from tcn_ahrs.estimators.learned import LearnedEstimator
+    from tcn_ahrs.health import health_report
+
+    a = _clip("fast", ft._frozen("gyr"))
+    seq = _seq(a, check=False)
+    out = LearnedEstimator("checkpoints/broad9.ckpt").run(seq, a["quat"][0])
+    said = health_report(seq.time, out.signals)
+    assert said and said[0].startswith("gyro frozen 4.9 s from 15.1 s"), said
+
+
+def test_a_simulated_clock_offset_is_fitted():
+    """The simulator's fast rotation with its ground truth 40 ms late: the fit finds it (and no
+    mount), as on BROAD's clip above."""
+    seq = simulate("fast_rotation", 40.0, 100.0, seed=3, device_seed=2, **CLEAN_MAG)
+    a = ft._lag(0.04)({"t": seq.time, "gyr": seq.gyro, "acc": seq.accel, "mag": seq.mag, "quat": seq.quat.copy()})
+    agree = ground_truth_agreement(_seq(a, check=False))
+    assert abs(agree["time_offset_s"] - 0.04) <= 0.011 and agree["misalignment_deg"] < 1.0, agree
