@@ -172,18 +172,27 @@ def main(name, ckpt, cv_json, tr_json, log=None, search_json=None):
         return general(name, ckpt, cv_json, tr_json, log)
     if "release" in json.loads(Path(cv_json).read_text()):
         return search_card(name, ckpt, cv_json, tr_json, log)
-    from tcn_ahrs.conf import CONF_DIR
+    from tcn_ahrs.experiments.search.learn import networks_off
 
     meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)
     model = model_from_checkpoint(ckpt)
     res = meta["model"].get("residual", {})
     knobs = {k: v for k, v in res.items() if k != "backbone"}
     data = Path(ckpt).read_bytes()
-    # the experiment: <name>.yaml where it exists (euroc6_small), else <name>_res (euroc6)
-    exp = name if (Path(CONF_DIR) / "experiment" / f"{name}.yaml").is_file() else f"{name}_res"
+    # the recipe: what the file records (tcn-ahrs train stores its overrides); files trained before
+    # that record say so — the card does not guess it from the file's name
+    recipe = meta.get("recipe")
+    exp = next((o.split("=", 1)[1] for o in (recipe or {}).get("overrides", []) if o.startswith("experiment=")), None)
+    said = (f"`{recipe['command']} {' '.join(recipe['overrides'])}`" if recipe
+            else "recipe not recorded in the file (trained before checkpoints kept it)")
     channels = (meta["model"].get("tcn") or {}).get("channels")
+    off = networks_off(ckpt)
+    what = ("**the VQF-grade backbone with tuned knobs**: its inference knobs switch both residual networks off "
+            "(`gyro_clip` 0, `trust_weight` 0), so it runs as that classical filter; the file carries "
+            f"{model.num_parameters():,} unused network parameters" if off else
+            "learned residuals on the VQF-grade backbone")
     out = [f"# `{Path(ckpt).name}` — model card\n",
-           f"- **Model**: learned residuals on the VQF-grade backbone (`experiment={exp}`, channels {channels}), "
+           f"- **Model**: {what} ({said}, channels {channels}), "
            f"{meta['layout']['axes']}-axis, {model.num_parameters():,} parameters (two causal TCNs, receptive field "
            f"{model.receptive_field} samples at {meta['layout'].get('rate_hz') or 0:.1f} Hz).",
            f"- **Backbone knobs** (chosen on the training recordings): `{res.get('backbone')}`; bias state starts at "
@@ -193,9 +202,12 @@ def main(name, ckpt, cv_json, tr_json, log=None, search_json=None):
            "fixed schedule's last epoch ships; nothing held out, nothing selected.",
            f"- **Size / sha256**: {len(data) / 1e6:.2f} MB, `{hashlib.sha256(data).hexdigest()}`"]
     out += cost_lines(model, log)
-    out += ["", "```bash", f"python scripts/train.py experiment={exp} train.all_recordings=true run_dir=runs/release/{name}",
-            f"python scripts/release_checkpoint.py runs/release/{name}/checkpoints/last.ckpt checkpoints/{name}.ckpt", "```", "",
-            f"## Nested folds (`python scripts/crossval.py experiment={exp}`), mean AAE / inclination, degrees", "",
+    if recipe:
+        out += ["", "```bash", f"{recipe['command']} {' '.join(recipe['overrides'])}",
+                f"python scripts/release_checkpoint.py runs/release/{name}/checkpoints/last.ckpt checkpoints/{name}.ckpt",
+                "```"]
+    out += ["", f"## Nested folds ({f'`python scripts/crossval.py experiment={exp}`' if exp else 'its recipe'}), "
+            "mean AAE / inclination, degrees", "",
             "| outer fold | learned | VQF | best classical (AAE) | best inclination | never worse? |", "|---|---|---|---|---|---|"]
     for fold, l, v, best, b, bi, i, ok in rows(json.loads(Path(cv_json).read_text())):
         vq = f"{v['aae_deg']:.2f} / {v['inclination_deg']:.2f}" if v else "–"

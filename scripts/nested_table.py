@@ -12,6 +12,8 @@ import math
 import sys
 from pathlib import Path
 
+from tcn_ahrs.verdict import never_worse
+
 LEARNED = "Learned"
 
 
@@ -26,8 +28,7 @@ def rows(result: dict):
         incl = {m: v["inclination_deg"] for m, v in classical.items() if v.get("inclination_deg") is not None}
         best_incl = min(incl, key=incl.get)
         vqf = next((v for m, v in classical.items() if m.startswith("vqf")), None)
-        ok = (round(learned["aae_deg"], 2) <= round(with_aae[best], 2)
-              and round(learned["inclination_deg"], 2) <= round(incl[best_incl], 2))
+        ok = never_worse(learned["aae_deg"], learned["inclination_deg"], with_aae[best], incl[best_incl])
         yield (f"{result['dataset']} fold {f['fold']}", learned, vqf, best, with_aae[best], best_incl, incl[best_incl], ok)
 
 

@@ -212,7 +212,7 @@ def shipped_summary(result: Mapping[str, Any]) -> str:
             continue
         srch = json.loads(found[0].read_text())
         rows = srch["rows"]
-        ext = ".ckpt" if str(row.get("family", "")).startswith("learned") else ".json"
+        ext = ".ckpt" if (REPO / "checkpoints" / f"{label}.ckpt").is_file() else ".json"
         lines.append(f"| `checkpoints/{label}{ext}` | {row.get('family', '?')} | {srch['release']['chosen']} | "
                      f"{np.mean([r['aae_deg'] for r in rows]):.2f} ({np.mean([r['best_classical_aae_deg'] for r in rows]):.2f}) | "
                      f"{sum(r['never_worse'] for r in rows)} of {len(rows)} |")

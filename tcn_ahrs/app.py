@@ -169,6 +169,24 @@ def staged_output(out, overwrite: bool = False, what: str = "output", landed: Op
         landed.append(out)
 
 
+NOISY_LOGGERS = ("torch.onnx", "onnxscript", "onnx_ir", "torch.export", "torch._export", "torch._dynamo",
+                 "torch._inductor", "torch.fx")
+"""Libraries whose own logs fill a command's output: ``tcn-ahrs benchmark speed`` printed 1,780 lines of
+the ONNX exporter's INFO around its table, ``tcn-ahrs export`` its "torchvision is not installed"."""
+
+
+def quiet_third_party(verbose: bool = False) -> None:
+    """The libraries of :data:`NOISY_LOGGERS` below ERROR off, and torch's pytree deprecation
+    warning, unless ``verbose`` (every command: ``verbose=true`` brings them back)."""
+    import logging
+    import warnings
+
+    for name in NOISY_LOGGERS:
+        logging.getLogger(name).setLevel(logging.NOTSET if verbose else logging.ERROR)
+    if not verbose:
+        warnings.filterwarnings("ignore", message=r".*isinstance\(treespec, LeafSpec\)", category=FutureWarning)
+
+
 def leaf_keys(cfg, prefix: str = "") -> List[str]:
     """Every leaf of a config as a dotted key (``train.epochs``)."""
     from omegaconf import DictConfig

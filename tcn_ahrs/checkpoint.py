@@ -5,8 +5,9 @@
   truncated ``last.ckpt``/best checkpoint; loads with ``torch.load(weights_only=True)``.
 * :func:`load_checkpoint` — ``weights_only=True`` loading with clear errors.
 * Each checkpoint carries ``checkpoint["tcn_ahrs"] = {"model": <model config>, "layout":
-  {"axes": 6|9, "channels": [...]}, "data": <data name>}`` (plain types only, so safe loading
-  works); :func:`check_layout` refuses a checkpoint whose layout differs from the data's.
+  {"axes": 6|9, "channels": [...]}, "data": <data name>}`` and, trained by ``tcn-ahrs train``, the
+  ``"recipe"`` {command, overrides} that made it (plain types only, so safe loading works);
+  :func:`check_layout` refuses a checkpoint whose layout differs from the data's.
 """
 from __future__ import annotations
 

@@ -18,7 +18,7 @@ import os
 import sys
 from typing import Callable, Dict, List, NamedTuple, Optional
 
-from .app import EXIT_USER_ERROR, check_overrides, user_errors
+from .app import EXIT_USER_ERROR, check_overrides, quiet_third_party, user_errors
 from .conf import SEARCH_PATH
 
 
@@ -84,6 +84,9 @@ def mode_as_override(args: List[str]) -> List[str]:
     return args
 
 
+VERBOSE_ENV = "TCN_AHRS_VERBOSE"
+
+
 def usage() -> str:
     width = max(map(len, COMMANDS))
     lines = ["usage: tcn-ahrs COMMAND [key=value ...]   (tcn-ahrs COMMAND --help: its config)", "", "commands:"]
@@ -115,6 +118,10 @@ def main(argv: Optional[List[str]] = None) -> None:
     target = command.target
 
     def task(cfg) -> None:
+        # after Hydra set up logging: third-party logs off unless asked for (a command's verbose=true,
+        # or TCN_AHRS_VERBOSE=1 for every command)
+        quiet_third_party(str(cfg.get("verbose", False)).lower() in ("true", "1")
+                          or os.environ.get(VERBOSE_ENV, "") not in ("", "0"))
         _resolve(target)(cfg)
 
     import hydra

@@ -27,13 +27,6 @@ def check_number(value: Any, key: str, kind=float, low: Optional[float] = None, 
     return v
 
 
-def check_keys(section, allowed: set, where: str) -> None:
-    """A config section's keys must be among ``allowed`` (a misspelt key is an error, not ignored)."""
-    unknown = set(section) - set(allowed)
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(allowed)}")
-
-
 def set_threads(value: Any) -> None:
     """``threads=N``: torch's CPU threads (None: torch's default); an integer >= 1."""
     if value is None:

@@ -25,11 +25,11 @@ def _options(group):
 @pytest.mark.parametrize("experiment", _options("experiment"))
 def test_every_experiment_composes_and_builds_its_model(experiment):
     from tcn_ahrs.model.ahrs import LearnedAHRS
-    from tcn_ahrs.training.run import TRAIN_KEYS, check_train_values
-    from tcn_ahrs.validate import check_keys
+    from tcn_ahrs.config import TrainConfig, check_keys
+    from tcn_ahrs.training.run import check_train_values
 
     cfg = _compose("train", [f"experiment={experiment}"])
-    check_keys(cfg.train, TRAIN_KEYS, "train")
+    check_keys(cfg.train, TrainConfig, "train")
     check_train_values(cfg.train)
     assert cfg.data.name in _options("data")
     model = LearnedAHRS.from_config(OmegaConf.to_container(cfg.model, resolve=True))

@@ -31,8 +31,9 @@ LAYERS = [
     # device check (the gyro bias at rest, read without ground truth)
     {"filters", "calibration", "device_check"},
     # the learned model, its losses and the scores (AAE, ...); checkpoints (which build models);
-    # navigation examples built on the filters' Kalman pieces; the health flags in words
-    {"model", "losses", "metrics", "checkpoint", "nav", "health"},
+    # navigation examples built on the filters' Kalman pieces; the health flags in words; the one
+    # "never worse" rule
+    {"model", "losses", "metrics", "checkpoint", "nav", "health", "verdict"},
     # one interface over classical, learned and peer estimators; the papers' reproductions
     {"estimators", "reproduce"},
     # evaluation runs, knob selection (tuning/: the classical grids, a learned model's knobs), training data
@@ -249,3 +250,43 @@ def test_no_function_over_120_lines():
                 if n > MAX_FUNCTION_LINES:
                     long.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} {node.name} ({n} lines)")
     assert not long, "functions over the limit:\n" + "\n".join(long)
+
+
+def test_no_import_circle_between_files():
+    """No two files of the package import each other, directly or around a circle (function-local
+    imports included; a package's ``__init__`` counts as a file): issue 48 found three —
+    ``export``'s package ⇄ stateless ⇄ classical_step ⇄ backbone_graph, ``export.c`` classical ⇄
+    runtime, ``datasets.simulate`` ⇄ its splits."""
+    graph = {}
+    for path in _sources():
+        module = _module_name(path)
+        graph[module] = {t for _, t in _imports(path) if t != module}
+    index, low, stack, on, circles = {}, {}, [], set(), []
+
+    def visit(v):  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in graph:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                circles.append(sorted(comp))
+
+    for v in list(graph):
+        if v not in index:
+            visit(v)
+    assert not circles, f"files importing each other: {circles}"

@@ -344,9 +344,9 @@ def test_the_device_check_is_a_calibration_the_classical_candidates_run_on(tmp_p
     cal = fit_named_calibration("device_check", [])
     assert isinstance(cal, RestBiasCalibration)
     fam = search.FAMILIES["backbone"]
-    save_estimator(tmp_path / "e.json", "backbone", 6, fam.defaults, cal, {})
+    save_estimator(tmp_path / "e.json", "backbone", 6, fam.defaults_for(6), cal, {})
     est = load_estimator(tmp_path / "e.json", name="file")
-    raw = search.Calibrated(fam.build(6, **fam.defaults), None, name="raw")
+    raw = search.Calibrated(fam.build(6, **fam.defaults_for(6)), None, name="raw")
     res = evaluate([est, raw], [seq], axes=6)["methods"]
     ref = evaluate([default(6)], checked([seq]), axes=6)["methods"]["Backbone (default)"]["mean"]["aae_deg"]
     assert res["file"]["mean"]["aae_deg"] == pytest.approx(ref, rel=1e-12)

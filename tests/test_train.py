@@ -250,6 +250,11 @@ def test_ddp_two_cpu_processes(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert (tmp_path / "checkpoints" / "last.ckpt").is_file()
     assert "Average" in r.stdout
+    # the recipe that trained it is recorded in the file (its model card reads it, never a name)
+    from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint
+
+    recipe = checkpoint_meta(load_checkpoint(tmp_path / "checkpoints" / "last.ckpt"))["recipe"]
+    assert recipe["command"] == "tcn-ahrs train" and {"trainer=ddp", "train.epochs=1"} <= set(recipe["overrides"])
 
 
 def test_weight_average_is_what_validation_and_release_use(tmp_path, seqs):

@@ -3,8 +3,8 @@ other schemas: the keys every data config has (:class:`DataCommon`), the recordi
 (:class:`RecordingsData`: broad, euroc, tumvi, oxiod, generic), and the extras of the rosbag
 reader, the simulator and the multi-dataset configs. A new ``conf/data/<name>.yaml`` of a
 recording-list dataset needs no new schema; one with keys of its own adds its class to
-:data:`DATA_SCHEMAS`. Data configs are checked by tests/test_config_schema.py, not at run time
-(the loaders read the keys they know)."""
+:data:`DATA_SCHEMAS`. A data config's keys are checked against its schema whenever it is loaded
+(:func:`tcn_ahrs.datasets.check_data_keys`), its files' values by tests/test_config_schema.py."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

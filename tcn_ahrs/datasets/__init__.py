@@ -50,6 +50,15 @@ def _get(cfg: Mapping, key: str, default: Any = None) -> Any:
 
 
 
+def check_data_keys(data_cfg: Mapping) -> None:
+    """The data config's keys against its kind's schema (:func:`tcn_ahrs.config.data.data_schema`),
+    when it is loaded: a misspelt key (``data.tarin``) is an error naming the expected set."""
+    from ..config import check_keys
+    from ..config.data import data_schema
+
+    check_keys(data_cfg, data_schema(_get(data_cfg, "name")), "data")
+
+
 def builtin_datasets() -> List[str]:
     """The dataset modules of this package (every module but the helpers; ``simulated`` is the
     embedded simulator): a new loader dropped in here is found without editing anything."""
@@ -151,6 +160,7 @@ def load_split(data_cfg: Mapping, split: Optional[str] = None,
     the first refusal raises (training must not silently lose a recording).
     """
     name = _get(data_cfg, "name")
+    check_data_keys(data_cfg)
     split = split or _get(data_cfg, "split", "train")
     if split not in SPLITS:
         raise DataError("data config", "split", f"expected one of {list(SPLITS)}, got {split!r}")

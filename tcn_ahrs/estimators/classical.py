@@ -46,6 +46,7 @@ from ..filters import ecf, eskf, madgwick, mahony
 from ..filters.common import heading_ref_for, magnetic_from_nav, triad_quat
 from ..filters.ecf import ECFParams
 from ..filters.eskf import ESEKFParams, RobustESEKFParams
+from ..filters.madgwick import MadgwickParams
 from ..filters.mahony import MahonyParams
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
@@ -245,12 +246,10 @@ class Mahony(MahonyParams, ClassicalEstimator):
 
 @register("madgwick", "classical")
 @dataclass
-class Madgwick(ClassicalEstimator):
+class Madgwick(MadgwickParams, ClassicalEstimator):
     """Madgwick gradient-descent filter; see :func:`tcn_ahrs.filters.madgwick` (equal to
     ``ahrs.filters.Madgwick`` after the NWU->ENU conversion). ``beta`` rad/s; ``None`` = ahrs
     default (0.033 6-axis, 0.041 9-axis). Tuned: ``beta``."""
-
-    beta: Optional[float] = None  # rad/s
 
     method: ClassVar[str] = "madgwick"
     tunable: ClassVar[Sequence[str]] = ("beta",)

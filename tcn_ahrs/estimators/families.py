@@ -4,12 +4,17 @@ candidate (mean AAE and inclination with the yardstick of :mod:`tcn_ahrs.metrics
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from .. import calibration as cal_mod
+from ..filters.ecf import ECFParams
+from ..filters.madgwick import MadgwickParams
+from ..filters.mahony import MahonyParams
+from ..kernels.backbone_layout import BackboneParams
+from ..kernels.params import searched, suggest
 from ..metrics import aae_and_inclination
 from ..sequence import ImuSequence
 from .base import initial_state
@@ -19,14 +24,31 @@ from .base import initial_state
 
 @dataclass(frozen=True)
 class Family:
-    """A classical family: ``build(axes, **knobs)`` -> estimator; ``space(trial)`` -> knobs (an
-    Optuna trial; log-uniform ranges around the authors' defaults); ``defaults`` are what the
-    study tries first (enqueued), so the tuned filter starts from the untuned one."""
+    """A classical family: ``build(axes, **knobs)`` -> estimator; its knobs, their ranges and defaults
+    read from the filter's parameter dataclass ``params`` (:func:`tcn_ahrs.kernels.params.knob`:
+    the fields with a search range), never restated here; ``space(trial)`` -> knobs (an Optuna
+    trial); :meth:`defaults_for` is what the study tries first (enqueued), so the tuned filter starts
+    from the untuned one."""
 
     name: str
     build: Callable[..., Any]
-    space: Callable[[Any], Dict[str, float]]
-    defaults: Dict[str, float] = field(default_factory=dict)
+    params: Optional[type] = None
+
+    @property
+    def knobs(self) -> Tuple[str, ...]:
+        return tuple(searched(self.params)) if self.params is not None else ()
+
+    def space(self, trial) -> Dict[str, float]:
+        return suggest(trial, self.params) if self.params is not None else {}
+
+    def defaults_for(self, axes: int) -> Dict[str, float]:
+        """The knobs at the filter's own defaults (what it runs without arguments) for ``axes``."""
+        if self.params is None:
+            return {}
+        own = {f.name: f.default for f in fields(self.params)}
+        if self.params is MadgwickParams:  # ahrs's default depends on the axes
+            own["beta"] = MadgwickParams.default_beta(axes)
+        return {k: float(own[k]) for k in self.knobs}
 
 
 def _raw(axes: int, **_):
@@ -48,37 +70,14 @@ def _backbone(axes: int, **knobs):
                     extra={k: v for k, v in knobs.items() if k not in own} or None)
 
 
-def _backbone_space(t) -> Dict[str, float]:
-    # VQF's full parameter set: inclination and heading time constants, bias estimation (its
-    # clip, sigmas, forgetting), rest detection (thresholds and times), disturbance rejection
-    return {"tau_acc": t.suggest_float("tau_acc", 0.5, 30.0, log=True),
-            "tau_mag": t.suggest_float("tau_mag", 1.0, 60.0, log=True),
-            "motion_bias": float(t.suggest_categorical("motion_bias", [1.0, 0.0])),
-            "mag_rejection": float(t.suggest_categorical("mag_rejection", [1.0, 0.0])),
-            "bias_clip": t.suggest_float("bias_clip", 0.5, 15.0, log=True),
-            "bias_sigma_init": t.suggest_float("bias_sigma_init", 0.1, 10.0, log=True),
-            "bias_sigma_motion": t.suggest_float("bias_sigma_motion", 0.01, 1.0, log=True),
-            "bias_sigma_rest": t.suggest_float("bias_sigma_rest", 0.003, 0.3, log=True),
-            "bias_forgetting_time": t.suggest_float("bias_forgetting_time", 10.0, 1000.0, log=True),
-            "rest_th_gyro": t.suggest_float("rest_th_gyro", 0.5, 10.0, log=True),
-            "rest_th_acc": t.suggest_float("rest_th_acc", 0.1, 2.0, log=True),
-            "rest_min_time": t.suggest_float("rest_min_time", 0.3, 5.0, log=True)}
-
-
 FAMILIES: Dict[str, Family] = {f.name: f for f in [
-    Family("strapdown", _raw, lambda t: {}),
-    Family("ecf", _classical("ecf"),
-           lambda t: {"k_norm": t.suggest_float("k_norm", 0.01, 5.0, log=True),
-                      "a_min": t.suggest_float("a_min", 0.1, 5.0, log=True)}, {"k_norm": 0.5, "a_min": 1.0}),
-    Family("mahony", _classical("mahony"),
-           lambda t: {"k_p": t.suggest_float("k_p", 0.01, 10.0, log=True),
-                      "k_i": t.suggest_float("k_i", 1e-4, 1.0, log=True)}, {"k_p": 1.0, "k_i": 0.3}),
-    Family("madgwick", _classical("madgwick"),
-           lambda t: {"beta": t.suggest_float("beta", 1e-3, 0.5, log=True)}, {"beta": 0.033}),
-    Family("backbone", _backbone, _backbone_space,
-           {"tau_acc": 3.0, "tau_mag": 9.0, "motion_bias": 1.0, "mag_rejection": 1.0, "bias_clip": 2.0,
-            "bias_sigma_init": 0.5, "bias_sigma_motion": 0.1, "bias_sigma_rest": 0.03,
-            "bias_forgetting_time": 100.0, "rest_th_gyro": 2.0, "rest_th_acc": 0.5, "rest_min_time": 1.5}),
+    Family("strapdown", _raw),
+    Family("ecf", _classical("ecf"), ECFParams),
+    Family("mahony", _classical("mahony"), MahonyParams),
+    Family("madgwick", _classical("madgwick"), MadgwickParams),
+    # VQF's full parameter set: inclination and heading time constants, bias estimation (its clip,
+    # sigmas, forgetting), rest detection (thresholds and times), disturbance rejection
+    Family("backbone", _backbone, BackboneParams),
 ]}
 
 SIMPLICITY = ("strapdown", "ecf", "mahony", "madgwick", "backbone", "residual", "closed_loop", "paper")

@@ -8,9 +8,9 @@ import torch
 from omegaconf import DictConfig, open_dict
 
 from ..checkpoint import check_layout, checkpoint_meta, load_checkpoint
-from ..config import EvaluateConfig, keys
+from ..config import EvaluateConfig, check_keys, keys
 from ..app import output_dir, refuse_earlier_output, staged_output
-from ..validate import check_keys, set_threads
+from ..validate import set_threads
 from .reports import print_table
 from .runner import evaluate
 
@@ -37,7 +37,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     ``load_split(data, data.split)``; writes results.json/.md, plots, TUM trajectories."""
     from ..estimators.learned import LearnedEstimator
 
-    check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EVAL_KEYS, "evaluate config")
+    check_keys({k: v for k, v in cfg.items() if k not in ("data", "hydra")}, EvaluateConfig, "evaluate config")
     set_threads(cfg.get("threads"))
     default_estimator = not cfg.get("ckpt")
     if not default_estimator:
@@ -94,7 +94,7 @@ def default(axes: int, name: str = DEFAULT_NAME):
     from ..estimators.families import FAMILIES, Calibrated
 
     fam = FAMILIES["backbone"]
-    return Calibrated(fam.build(axes, **fam.defaults), None, name=name)
+    return Calibrated(fam.build(axes, **fam.defaults_for(axes)), None, name=name)
 
 
 def shipped(ckpt: str) -> str:

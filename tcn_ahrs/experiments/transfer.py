@@ -20,6 +20,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, List, Mapping, Optional, Sequence
 
+from .. import verdict
 from ..checkpoint import checkpoint_meta, load_checkpoint
 from ..config import conf_path
 from ..estimators import registry
@@ -74,9 +75,13 @@ def shipped_meta(path: str) -> Dict[str, Any]:
         family = f"{doc['family']} ({'tuned' if doc.get('knobs') else 'defaults'}{', calibrated' if doc.get('calibration') else ''})"
         return {"axes": int(doc["axes"]), "data": str((doc.get("provenance") or {}).get("dataset", "")),
                 "family": family}
+    from .search.learn import networks_off
+
     meta = checkpoint_meta(load_checkpoint(path), path)
     loop = str(meta["model"].get("loop", "open"))
     family = {"backbone": "learned residual", "closed": "learned closed loop"}.get(loop, "learned open loop")
+    if networks_off(path):  # called what it runs as: the classical filter its knobs leave
+        family = "backbone, tuned knobs (networks off)"
     return {"axes": int(meta["layout"]["axes"]), "data": str(meta.get("data", "")), "family": family}
 
 
@@ -105,9 +110,8 @@ def score_cell(ckpt: str, label: str, seqs, axes: int, baselines: Sequence[str])
                     default=None)
     backbone = next((v for k, v in means.items() if k.startswith("backbone")), None)
     # compared at the tables' 0.01 deg rounding (a fallback equal to a classical filter is not worse)
-    never_worse = (learned["aae_deg"] is not None and best is not None
-                   and round(learned["aae_deg"], 2) <= round(classical[best]["aae_deg"], 2)
-                   and (best_incl is None or round(learned["inclination_deg"], 2) <= round(best_incl, 2)))
+    never_worse = best is not None and verdict.never_worse(learned["aae_deg"], learned["inclination_deg"],
+                                                           classical[best]["aae_deg"], best_incl)
     return {"learned": learned, "backbone": backbone, "best": best, "best_metrics": classical.get(best),
             "best_inclination_deg": best_incl, "never_worse": bool(never_worse), "all": means,
             "recordings": [s.name for s in seqs]}

@@ -53,7 +53,7 @@ class BackboneGraph(nn.Module):
     float64; gyro the rate fed to the filter (rad/s, body), acc the specific force (m/s²), mag
     the field (µT; any (3,) without a magnetometer); ``skip_*``: that reading is [0 0 0] (its
     update is not applied). ``quat(s)``: the output attitude (6D or 9D), nav_from_body. ``ops``:
-    the table whose tan and atan2 the graph uses (:func:`tcn_ahrs.export.stateless.onnx_ops` for
+    the table whose tan and atan2 the graph uses (:func:`tcn_ahrs.kernels.ops.onnx_ops` for
     ONNX Runtime)."""
 
     def __init__(self, params: Sequence[float], use_mag: bool, ops):

@@ -88,13 +88,13 @@ def magnetic_start(ham: Tensor, matrix: Tensor, about_up: Tensor, q0: Tensor, ma
 class ECFStep(nn.Module):
     """The step graph of an ECF estimator file's contents (``doc``: family, axes, knobs,
     calibration; :func:`~tcn_ahrs.estimators.families.read_estimator`). ``onnx``: float64 atan2
-    from ops ONNX Runtime runs (:func:`tcn_ahrs.export.stateless.onnx_ops`)."""
+    from ops ONNX Runtime runs (:func:`tcn_ahrs.kernels.ops.onnx_ops`)."""
 
     def __init__(self, doc: Dict, onnx: bool = False):
         super().__init__()
         from ..calibration import StaticCalibration
         from ..filters.ecf import ECFParams
-        from .stateless import onnx_ops
+        from ..kernels.ops import onnx_ops
 
         self.axes = c = int(doc["axes"])
         knobs = {**ECFParams().__dict__, **dict(doc.get("knobs") or {})}

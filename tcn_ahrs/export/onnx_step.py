@@ -16,7 +16,7 @@ Files (``export_onnx(ckpt, "FILE.onnx", mode="both")``):
   samples (N dynamic). :class:`OnnxBatch` checks the inputs and runs it.
 
 The networks run in float32 inside (ONNX Runtime's float32 kernels; the backbone, the head and
-the outputs are float64; float64 tan/atan2 as in :func:`tcn_ahrs.export.stateless.onnx_ops`).
+the outputs are float64; float64 tan/atan2 as in :func:`tcn_ahrs.kernels.ops.onnx_ops`).
 Needs ``pip install 'tcn-ahrs[deploy]'`` (onnx, onnxscript, onnxruntime) to export;
 onnxruntime (and numpy) to run.
 """

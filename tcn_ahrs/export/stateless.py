@@ -32,7 +32,6 @@ the networks.
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
@@ -41,33 +40,12 @@ from torch import Tensor, nn
 
 from ..kernels import backbone as K
 from ..conventions import INPUT_LIMITS, MAX_DT, MIN_DT
-from ..kernels.ops import torch_ops
+from ..kernels.ops import onnx_ops, torch_ops  # noqa: F401 (onnx_ops: read here by the tests)
 from .backbone_graph import N_COEFF_GRAPH, BackboneGraph
 from .classical_step import magnetic_start
 from .fused import gelu_scaled
 
 F64 = torch.float64
-
-
-def onnx_ops() -> SimpleNamespace:
-    """The torch ops table with float64 tan and atan2 built from ops ONNX Runtime runs in float64
-    (see the module docstring; the graphs need no asin)."""
-    base = vars(torch_ops()).copy()
-
-    def tan(x):
-        return torch.sin(x) / torch.cos(x)
-
-    def atan2(y, x):
-        y, x = torch.as_tensor(y, dtype=F64), torch.as_tensor(x, dtype=F64)
-        a0 = torch.atan2(y.float(), x.float()).double()  # within ~1e-7 rad
-        c0, s0 = torch.cos(a0), torch.sin(a0)
-        num = y * c0 - x * s0        # r sin(a − a0)
-        den = x * c0 + y * s0        # r cos(a − a0) ~ r > 0: a − a0 = atan(num / den) = num / den to
-        # (1e-7)³ / 3; x = y = 0 gives 0 / 1e-300 = 0 (atan2(0, 0) = 0)
-        return a0 + num / (den + 1e-300)
-
-    base.update(name="torch_onnx", tan=tan, atan2=atan2)
-    return SimpleNamespace(**base)
 
 
 class ResidualStep(nn.Module):
@@ -353,7 +331,7 @@ def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None,
     from pathlib import Path
 
     from ..checkpoint import checkpoint_meta, load_checkpoint
-    from . import build_metadata, checkpoint_export_meta
+    from .metadata import build_metadata, checkpoint_export_meta
     from .backbone import ResidualStreaming
     from .inputs import ExportError
 

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
+from ..kernels.params import knob
 from ..conventions import GRAVITY
 from .compiled import ecf_loop, use_compiled
 from .common import converter_like, elapsed, field_gates, flatten_batch, gain_schedule, normalize, unflatten
@@ -39,12 +40,12 @@ class ECFParams:
     """The ECF's parameters, meaning, unit and default once: read by :func:`ecf`, the estimator
     registry (:class:`tcn_ahrs.estimators.classical.ECF`) and its tuning grid."""
 
-    k_norm: float = 0.5  # 1/s, the steady-state correction gain (Eq. 8)
-    k_init: float = 10.0  # 1/s, the gain at the start, decaying to k_norm over t_init
-    t_init: float = 3.0  # s
-    a_min: float = 1.0  # m/s², the accelerometer used while | |a| - g | < a_min (Eq. 7)
-    m_min: float = 20.0  # µT, the magnetometer used while its norm lies in [m_min, m_max]
-    m_max: float = 70.0  # µT
+    k_norm: float = knob(0.5, "1/s", "the steady-state correction gain (Eq. 8)", (0.01, 5.0))
+    k_init: float = knob(10.0, "1/s", "the gain at the start, decaying to k_norm over t_init")
+    t_init: float = knob(3.0, "s", "the start's length")
+    a_min: float = knob(1.0, "m/s²", "the accelerometer used while | |a| - g | < a_min (Eq. 7)", (0.1, 5.0))
+    m_min: float = knob(20.0, "µT", "the magnetometer used while its norm lies in [m_min, m_max]")
+    m_max: float = knob(70.0, "µT", "the magnetometer's largest norm used")
 
 
 _ECF = ECFParams()

@@ -22,17 +22,32 @@ sampling-rate independent. ahrs defaults: 0.033 (6-axis) and 0.041 (9-axis).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Dict, Optional
 
 import torch
 from torch import Tensor
 
 from .. import so3
+from ..kernels.params import knob
 from .compiled import madgwick_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, nwu_from_enu_quat, unflatten
 
-BETA_IMU = 0.033
-BETA_MARG = 0.041
+BETA_IMU = 0.033   # rad/s, ahrs's default with 6 axes
+BETA_MARG = 0.041  # rad/s, ... and with 9
+
+
+@dataclass
+class MadgwickParams:
+    """Madgwick's parameter, meaning, unit and default once: read by :func:`madgwick`, the estimator
+    registry (:class:`tcn_ahrs.estimators.classical.Madgwick`) and the family search."""
+
+    beta: Optional[float] = knob(None, "rad/s", "the gradient-descent gain; None: BETA_IMU with 6 axes, "
+                                 "BETA_MARG with 9 (ahrs's defaults)", (1e-3, 0.5))
+
+    @staticmethod
+    def default_beta(axes: int) -> float:
+        return BETA_MARG if axes == 9 else BETA_IMU
 
 
 def _gradient_imu(q: Tensor, a: Tensor) -> Tensor:
@@ -95,7 +110,7 @@ def madgwick(
         ``quat`` (..., N, 4) nav_from_body, ENU.
     """
     if beta is None:
-        beta = BETA_IMU if mag is None else BETA_MARG
+        beta = MadgwickParams.default_beta(6 if mag is None else 9)
     T = converter_like(gyro)
     gyro, accel, dt, q0, mag = T(gyro), T(accel), T(dt), T(q0), T(mag)
     dtype = gyro.dtype

@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from .. import so3
+from ..kernels.params import knob
 from .compiled import mahony_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, unflatten
 
@@ -36,9 +37,9 @@ class MahonyParams:
     """Mahony's parameters, meaning, unit and default once: read by :func:`mahony` and the
     estimator registry (:class:`tcn_ahrs.estimators.classical.Mahony`)."""
 
-    k_p: float = 1.0  # 1/s, the proportional gain
-    k_i: float = 0.3  # 1/s², the integral (gyro bias) gain
-    compat: bool = False  # True: ``ahrs.filters.Mahony``'s update order, for the cross-check
+    k_p: float = knob(1.0, "1/s", "the proportional gain", (0.01, 10.0))
+    k_i: float = knob(0.3, "1/s²", "the integral (gyro bias) gain", (1e-4, 1.0))
+    compat: bool = knob(False, "flag", "``ahrs.filters.Mahony``'s update order, for the cross-check")
 
 
 _MAHONY = MahonyParams()

@@ -15,6 +15,8 @@ import math
 from dataclasses import astuple, dataclass, fields
 from typing import Dict, List, Tuple
 
+from .params import knob
+
 
 # ------------------------------------------------------------------------------ parameters
 
@@ -26,45 +28,45 @@ class BackboneParams:
     Units: seconds, degrees and °/s where named so (as VQF's), m/s² for ``rest_th_acc``,
     fractions for ``mag_norm_th``. Flags are 1.0 / 0.0 (kept as floats: one flat vector)."""
 
-    tau_acc: float = 3.0                 # s, low-pass of the accelerometer in the inertial frame
-    tau_mag: float = 9.0                 # s, heading correction time constant
-    motion_bias: float = 1.0             # bias estimation in motion
-    rest_bias: float = 1.0               # rest detection and bias estimation at rest
-    mag_rejection: float = 1.0           # magnetic disturbance detection and rejection
-    bias_sigma_init: float = 0.5         # °/s
-    bias_forgetting_time: float = 100.0  # s
-    bias_clip: float = 2.0               # °/s
-    bias_sigma_motion: float = 0.1       # °/s
-    bias_vertical_forgetting: float = 1e-4
-    bias_sigma_rest: float = 0.03        # °/s
-    rest_min_time: float = 1.5           # s
-    rest_filter_tau: float = 0.5         # s
-    rest_th_gyro: float = 2.0            # °/s
-    rest_th_acc: float = 0.5             # m/s²
-    mag_current_tau: float = 0.05        # s
-    mag_ref_tau: float = 20.0            # s
-    mag_norm_th: float = 0.1             # relative
-    mag_dip_th: float = 10.0             # °
-    mag_new_time: float = 20.0           # s
-    mag_new_first_time: float = 5.0      # s
-    mag_new_min_gyro: float = 20.0       # °/s
-    mag_min_undisturbed_time: float = 0.5  # s
-    mag_max_rejection_time: float = 60.0   # s
-    mag_rejection_factor: float = 2.0
+    tau_acc: float = knob(3.0, "s", "low-pass of the accelerometer in the inertial frame", (0.5, 30.0))
+    tau_mag: float = knob(9.0, "s", "heading correction time constant", (1.0, 60.0))
+    motion_bias: float = knob(1.0, "flag", "bias estimation in motion", [1.0, 0.0])
+    rest_bias: float = knob(1.0, "flag", "rest detection and bias estimation at rest")
+    mag_rejection: float = knob(1.0, "flag", "magnetic disturbance detection and rejection", [1.0, 0.0])
+    bias_sigma_init: float = knob(0.5, "°/s", "initial bias uncertainty", (0.1, 10.0))
+    bias_forgetting_time: float = knob(100.0, "s", "time for the bias variance to grow to 0.1 °/s", (10.0, 1000.0))
+    bias_clip: float = knob(2.0, "°/s", "largest bias estimate (and disagreement)", (0.5, 15.0))
+    bias_sigma_motion: float = knob(0.1, "°/s", "bias measurement noise in motion", (0.01, 1.0))
+    bias_vertical_forgetting: float = knob(1e-4, "", "vertical bias measurement weight factor")
+    bias_sigma_rest: float = knob(0.03, "°/s", "bias measurement noise at rest", (0.003, 0.3))
+    rest_min_time: float = knob(1.5, "s", "still this long to be at rest", (0.3, 5.0))
+    rest_filter_tau: float = knob(0.5, "s", "low-pass of the rest detection")
+    rest_th_gyro: float = knob(2.0, "°/s", "rest threshold, gyro", (0.5, 10.0))
+    rest_th_acc: float = knob(0.5, "m/s²", "rest threshold, accelerometer", (0.1, 2.0))
+    mag_current_tau: float = knob(0.05, "s", "low-pass of the field's norm and dip")
+    mag_ref_tau: float = knob(20.0, "s", "time constant of the field's reference")
+    mag_norm_th: float = knob(0.1, "", "relative norm deviation counted as disturbed")
+    mag_dip_th: float = knob(10.0, "°", "dip deviation counted as disturbed")
+    mag_new_time: float = knob(20.0, "s", "a new field accepted after this long steady")
+    mag_new_first_time: float = knob(5.0, "s", "the first field accepted after this long")
+    mag_new_min_gyro: float = knob(20.0, "°/s", "turning this fast to accept a new field")
+    mag_min_undisturbed_time: float = knob(0.5, "s", "undisturbed this long to update the reference")
+    mag_max_rejection_time: float = knob(60.0, "s", "longest rejection")
+    mag_rejection_factor: float = knob(2.0, "", "gain divisor after the longest rejection")
     # sensor health, no ground truth needed (not in VQF): a sensor whose three readings repeat
     # exactly for this long (and FROZEN_MIN_SAMPLES samples) is frozen — its noise makes that
     # improbable (the longest repeat in BROAD, EuRoC, TUM VI and OxIOD: 5 samples, 17 ms) — and is
     # then neither integrated (gyro) nor trusted (accelerometer); 0 switches the check off
-    frozen_time: float = 0.1             # s
+    frozen_time: float = knob(0.1, "s", "a sensor repeating its readings this long is frozen; 0: off")
     # a reading that repeats its axis's largest magnitude so far, above these, while another axis
     # changes, is clipped (a saturated sensor; a clipped accelerometer is not trusted); 0: off
-    gyro_clip_floor: float = 2.0         # rad/s (the smallest common range, ±125 °/s, is 2.18)
-    acc_clip_floor: float = 19.0         # m/s² (the smallest common range, ±2 g, is 19.6)
+    gyro_clip_floor: float = knob(2.0, "rad/s", "clip check above this (±125 °/s, the smallest range, is 2.18)")
+    acc_clip_floor: float = knob(19.0, "m/s²", "clip check above this (±2 g, the smallest range, is 19.6)")
     # a step longer than gap_factor × the typical step (its running mean) is a gap (samples
     # lost): the gyro over it is the mean of the readings either side (not the last reading over
     # the whole gap: a 2 s gap in walking, 52° error 10-20 s after, VQF on the resampled stream
     # 23°) and the low-pass filters hold over it; flagged `gap`; 0 switches the check off
-    gap_factor: float = 4.0
+    gap_factor: float = knob(4.0, "", "a step this many typical steps long is a gap; 0: off")
 
     def vector(self) -> Tuple[float, ...]:
         return tuple(float(v) for v in astuple(self))

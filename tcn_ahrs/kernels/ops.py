@@ -105,3 +105,27 @@ def load_kernel(module: ModuleType, table: SimpleNamespace) -> ModuleType:
         sys.modules[name] = mod
         spec.loader.exec_module(mod)
     return sys.modules[name]
+
+
+def onnx_ops() -> SimpleNamespace:
+    """The torch ops table with float64 tan and atan2 built from ops ONNX Runtime runs in float64
+    (ONNX Runtime has no float64 Tan, Atan or Asin: tan = sin / cos, atan2 a float32 one refined
+    once; the export graphs need no asin)."""
+    import torch
+
+    base = vars(torch_ops()).copy()
+
+    def tan(x):
+        return torch.sin(x) / torch.cos(x)
+
+    def atan2(y, x):
+        y, x = torch.as_tensor(y, dtype=torch.float64), torch.as_tensor(x, dtype=torch.float64)
+        a0 = torch.atan2(y.float(), x.float()).double()  # within ~1e-7 rad
+        c0, s0 = torch.cos(a0), torch.sin(a0)
+        num = y * c0 - x * s0        # r sin(a − a0)
+        den = x * c0 + y * s0        # r cos(a − a0) ~ r > 0: a − a0 = atan(num / den) = num / den to
+        # (1e-7)³ / 3; x = y = 0 gives 0 / 1e-300 = 0 (atan2(0, 0) = 0)
+        return a0 + num / (den + 1e-300)
+
+    base.update(name="torch_onnx", tan=tan, atan2=atan2)
+    return SimpleNamespace(**base)

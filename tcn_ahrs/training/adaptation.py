@@ -9,8 +9,8 @@ The evidence comes from the later parts of the user's recordings, which the fine
 trained on (``data.train_part``):
 
 * with ground truth (``supervision="gt"``): mean AAE and inclination against it (the metrics
-  module's one definition); adopted when the AAE is lower and the inclination no higher (0.01°,
-  the tables' rounding);
+  module's one definition); adopted when it is better (:func:`tcn_ahrs.verdict.better`: a lower
+  AAE and an inclination no higher, at the tables' 0.01° resolution);
 * without (``supervision="self"``), two readings of the sensors' own consistency:
   - ``rest_drift_dps``: how fast the estimate turns while the device rests (°/s; rest as the device
     check reads it, from the signal's character, :func:`tcn_ahrs.device_check.rest_windows`) — the
@@ -29,13 +29,12 @@ from typing import Any, Dict, Optional, Sequence
 import numpy as np
 import torch
 
-from .. import so3
+from .. import so3, verdict
 from ..sequence import ImuSequence
 
 MIN_GAIN = 0.1          # the rest drift must fall by 10 % (self-supervised)
 MIN_GAIN_DPS = 0.01     # °/s, and by this much: below it (0.6° a minute) it is the evidence's noise
 GRAVITY_TOL_DEG = 0.05  # °, how much the gravity angle may rise (self-supervised)
-INCLINATION_TOL_DEG = 0.01  # °, how much the inclination may rise (with ground truth)
 
 
 def rest_drift_dps(seq: ImuSequence, quat: np.ndarray) -> Optional[tuple]:
@@ -115,7 +114,7 @@ def decide(before: Dict[str, Any], after: Dict[str, Any], supervision: str) -> t
         if a0 is None or a1 is None:
             return False, "no held-out part with ground truth: no evidence, the starting model is kept"
         i0, i1 = before["inclination_deg"], after["inclination_deg"]
-        ok = a1 < a0 and i1 <= i0 + INCLINATION_TOL_DEG
+        ok = verdict.better(a1, i1, a0, i0)
         return ok, (f"held-out parts: AAE {a0:.2f} → {a1:.2f}°, inclination {i0:.2f} → {i1:.2f}°: "
                     + ("better, the fine-tuned model ships" if ok else "not better, the starting model is kept"))
     d0, d1 = before.get("rest_drift_dps"), after.get("rest_drift_dps")

@@ -236,6 +236,12 @@ class AHRSModule(pl.LightningModule):
         checkpoint["tcn_ahrs"] = layout_meta(cfg, self.model.axes, self.hparams.data_name,
                                              self.hparams.get("rate_hz"), self.augment.get("rate_hz"),
                                              bool(self.hparams.get("device_check")))
+        # the recipe that trained it, recorded in the file (its model card reads it, never a name)
+        from .trainer import command_line_overrides
+
+        overrides = command_line_overrides()
+        if overrides is not None:
+            checkpoint["tcn_ahrs"]["recipe"] = {"command": "tcn-ahrs train", "overrides": overrides}
 
 
 # ====================================================================== helpers

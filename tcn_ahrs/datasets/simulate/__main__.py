@@ -8,7 +8,7 @@ from typing import Dict, Tuple
 import numpy as np
 
 from ...conventions import DEG
-from . import PROFILES, simulate
+from .generate import PROFILES, simulate
 
 
 # =============================================================================

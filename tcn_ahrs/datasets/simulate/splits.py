@@ -5,7 +5,7 @@ from typing import Any, Dict, List, Optional
 
 
 from ...sequence import ImuSequence
-from . import PROFILES, SPLITS, simulate
+from .generate import PROFILES, SPLITS, simulate
 
 
 # =============================================================================

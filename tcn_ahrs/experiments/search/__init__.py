@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Dict, List, Optional, Sequence
 
+from ... import verdict
 from ...estimators.families import CALIBRATIONS, FAMILIES, SIMPLICITY, Calibrated, Family, mean_scores  # noqa: F401
 from .choice import best_classical, choose, choose_candidate, fold_choice, release_choice, simplicity_rank  # noqa: F401
 from .fold import (_fit_candidate, _inner_splits, _learned_candidates, auto_folds, candidate_names,  # noqa: F401
@@ -314,6 +315,6 @@ def _result(cfg, records: List[Dict[str, Any]], seconds: float) -> Dict[str, Any
                      "chosen_by_seed_alone": r["chosen"], "aae_deg": got["aae_deg"],
                      "inclination_deg": got["inclination_deg"], "best_classical": name, "best_classical_aae_deg": bar,
                      "best_inclination_deg": incl_bar,
-                     "never_worse": bool(got["aae_deg"] <= bar + 1e-9 and got["inclination_deg"] <= incl_bar + 0.05)})
+                     "never_worse": verdict.never_worse(got["aae_deg"], got["inclination_deg"], bar, incl_bar)})
     return {"dataset": str(cfg.data.name), "axes": int(cfg.data.get("axes", 9)), "seconds": seconds,
             "rows": rows, "folds": records, "config": OmegaConf.to_container(cfg.search, resolve=True)}

@@ -26,15 +26,14 @@ def tune_family(family: Family, seqs: Sequence[ImuSequence], axes: int, trials: 
     import optuna
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    probe = family.space(optuna.trial.FixedTrial(dict(family.defaults))) if family.defaults else {}
-    if not probe:  # nothing to tune (strapdown)
+    if not family.knobs:  # nothing to tune (strapdown)
         return {}, mean_scores(Calibrated(family.build(axes), cal), seqs, axes)[0]
     if isinstance(storage, str) and storage.startswith("sqlite:"):
         storage = _sqlite_storage(storage)
     study = optuna.create_study(study_name=study_name, storage=storage, load_if_exists=True,
                                 sampler=optuna.samplers.TPESampler(seed=seed), direction="minimize")
     if not study.trials:
-        study.enqueue_trial(dict(family.defaults))
+        study.enqueue_trial(family.defaults_for(axes))
     left = trials - len([t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE])
     if left > 0:
         def objective(trial):
@@ -75,8 +74,8 @@ def _fit_candidate(family: str, calib: str, tuned: bool, train: Sequence[ImuSequ
     from 10 s before the first scored sample; None: whole recordings). Returns (estimator, knobs)."""
     fam = FAMILIES[family]
     cal = fit_named_calibration(calib, train)
-    knobs = dict(fam.defaults)
-    if tuned and fam.defaults:
+    knobs = fam.defaults_for(axes)
+    if tuned and fam.knobs:
         seqs = train
         if tune_seconds:
             from ...tuning.grid import tuning_clips
@@ -92,7 +91,7 @@ def candidate_names(families: Sequence[str], calibrations: Sequence[str]) -> Lis
     out = []
     for f in families:
         for tuned in (False, True):
-            if tuned and not FAMILIES[f].defaults:
+            if tuned and not FAMILIES[f].knobs:
                 continue  # nothing to tune (strapdown)
             for c in calibrations:
                 out.append((f"{f} ({'tuned' if tuned else 'defaults'})" + ("" if c == "none" else f" +cal:{c}"),

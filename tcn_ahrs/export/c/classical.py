@@ -15,7 +15,7 @@ from ...conventions import GRAVITY, INPUT_LIMITS, MAX_DT, MIN_DT
 from ...kernels import classical as KC
 from ...kernels import quat as KQ
 from ..inputs import ExportError
-from .runtime import _f64, template
+from .templates import _f64, template
 from .translate import kernel_c
 
 C_FAMILIES = ("ecf",)  # the classical families with a C runtime

@@ -15,19 +15,10 @@ from ...app import staged_files
 from ...conventions import INPUT_LIMITS, MAX_DT, MIN_DT
 from ...kernels import backbone as K
 from ..inputs import ExportError
+from .templates import TEMPLATES, _f32, _f64, template  # noqa: F401 (template: read by the tests)
 from .translate import kernel_c
 
-TEMPLATES = Path(__file__).resolve().parent  # model.h.in, model.c.in, helpers.h.in (package data)
 
-
-def template(name: str) -> str:
-    """A C template shipped beside this module; a source template (``*.c.in``) gets the REAL
-    helpers and the input contract (``helpers.h.in``, ``contract.c.in``) written in."""
-    text = (TEMPLATES / name).read_text()
-    if not name.endswith(".c.in"):
-        return text
-    return (text.replace("@HELPERS@", (TEMPLATES / "helpers.h.in").read_text())
-            .replace("@CONTRACT@", (TEMPLATES / "contract.c.in").read_text()))
 
 ROOTS_6 = ("coefficients", "gyro_update", "acc_update", "quat6", "qmul")
 ROOTS_9 = ROOTS_6 + ("mag_update", "quat9")
@@ -36,20 +27,6 @@ BLOCK = 8
 # the kernels computed in double in every build (the low-pass filters and their coefficients;
 # helpers.h.in WREAL says why)
 WIDE_KERNELS = ("butter", "coefficients", "lp_begin", "lp", "lp_end", "lp3", "mag_update")
-
-
-def _f32(a) -> str:
-    """float32 values as exact C literals."""
-    a = np.asarray(a, dtype=np.float32).reshape(-1)
-    def lit(v: float) -> str:
-        t = f"{v:.9g}"
-        return (t if any(ch in t for ch in ".e") else t + ".0") + "f"  # 0 -> 0.0f, not 0f
-    return ",\n".join(", ".join(lit(float(v)) for v in a[i:i + 8]) for i in range(0, a.size, 8)) or "0.0f"
-
-
-def _f64(a) -> str:
-    a = np.asarray(a, dtype=np.float64).reshape(-1)
-    return ",\n".join(", ".join(repr(float(v)) for v in a[i:i + 6]) for i in range(0, a.size, 6)) or "0.0"
 
 
 def _network_arrays(model: nn.Module):
