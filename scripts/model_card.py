@@ -172,7 +172,7 @@ def main(name, ckpt, cv_json, tr_json, log=None, search_json=None):
         return general(name, ckpt, cv_json, tr_json, log)
     if "release" in json.loads(Path(cv_json).read_text()):
         return search_card(name, ckpt, cv_json, tr_json, log)
-    from tcn_ahrs.experiments.search.learn import networks_off
+    from tcn_ahrs.checkpoint import networks_off
 
     meta = checkpoint_meta(load_checkpoint(ckpt), ckpt)
     model = model_from_checkpoint(ckpt)

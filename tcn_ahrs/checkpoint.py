@@ -103,6 +103,16 @@ def checkpoint_meta(ckpt: Mapping, path="checkpoint") -> Dict[str, Any]:
     return meta
 
 
+def networks_off(path) -> bool:
+    """Whether a residual checkpoint's inference knobs switch both networks off (``gyro_clip`` 0 and
+    ``trust_weight`` 0): it runs as the backbone with its knobs, and is called that (the search's
+    release, the transfer tables, the model cards)."""
+    if path is None:
+        return False
+    res = (checkpoint_meta(load_checkpoint(str(path)), str(path))["model"] or {}).get("residual")
+    return bool(res) and float(res.get("gyro_clip", 1.0)) == 0.0 and float(res.get("trust_weight", 1.0)) == 0.0
+
+
 def check_layout(ckpt: Mapping, axes: int, path="checkpoint", data_axes: Optional[int] = None) -> None:
     """Raise :class:`CheckpointError` unless the checkpoint was trained for ``axes``-axis input.
     ``data_axes``: the most the dataset can provide (6: it has no magnetometer), so the advice

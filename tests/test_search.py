@@ -359,7 +359,7 @@ def test_a_learned_checkpoint_with_its_networks_off_is_called_the_backbone(tmp_p
     import torch
 
     from tcn_ahrs.checkpoint import load_checkpoint
-    from tcn_ahrs.experiments.search.learn import networks_off
+    from tcn_ahrs.checkpoint import networks_off
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[1]

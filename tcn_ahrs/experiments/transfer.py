@@ -75,7 +75,7 @@ def shipped_meta(path: str) -> Dict[str, Any]:
         family = f"{doc['family']} ({'tuned' if doc.get('knobs') else 'defaults'}{', calibrated' if doc.get('calibration') else ''})"
         return {"axes": int(doc["axes"]), "data": str((doc.get("provenance") or {}).get("dataset", "")),
                 "family": family}
-    from .search.learn import networks_off
+    from ..checkpoint import networks_off
 
     meta = checkpoint_meta(load_checkpoint(path), path)
     loop = str(meta["model"].get("loop", "open"))

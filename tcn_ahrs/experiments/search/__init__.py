@@ -262,7 +262,8 @@ def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict
     import os
     import shutil
 
-    from .learn import RECIPES, candidate_name, data_overrides, networks_off, train_recipe
+    from ...checkpoint import networks_off
+    from .learn import RECIPES, candidate_name, data_overrides, train_recipe
 
     recipe = next((r for r in RECIPES if candidate_name(r) == name), None)
     if recipe is None or not folds:

@@ -13,7 +13,7 @@ from ... import calibration as cal_mod
 from ...estimators.families import FAMILIES, Calibrated, Family, fit_named_calibration, mean_scores, recording_scores
 from ...sequence import ImuSequence
 from .choice import choose_candidate
-from .learn import networks_off
+from ...checkpoint import networks_off
 from .records import _sqlite_storage
 
 

@@ -100,17 +100,6 @@ def train_recipe(recipe: str, run_dir: Path, train: Sequence[ImuSequence], val: 
     return best
 
 
-def networks_off(path) -> bool:
-    """Whether a residual checkpoint's inference knobs switch both networks off (``gyro_clip`` 0 and
-    ``trust_weight`` 0): it runs as the backbone with its knobs, and is called that."""
-    from ...checkpoint import checkpoint_meta, load_checkpoint
-
-    if path is None:
-        return False
-    res = (checkpoint_meta(load_checkpoint(str(path)), str(path))["model"] or {}).get("residual")
-    return bool(res) and float(res.get("gyro_clip", 1.0)) == 0.0 and float(res.get("trust_weight", 1.0)) == 0.0
-
-
 def learned_estimator(path, name: str):
     """The checkpoint as the search scores it: on device-checked input where it was trained on it
     (as ``tcn-ahrs evaluate`` runs it), through the same calibration the classical candidates use."""
