@@ -261,32 +261,5 @@ def test_no_import_circle_between_files():
     for path in _sources():
         module = _module_name(path)
         graph[module] = {t for _, t in _imports(path) if t != module}
-    index, low, stack, on, circles = {}, {}, [], set(), []
-
-    def visit(v):  # Tarjan's strongly connected components
-        index[v] = low[v] = len(index)
-        stack.append(v)
-        on.add(v)
-        for w in graph.get(v, ()):
-            if w not in graph:
-                continue
-            if w not in index:
-                visit(w)
-                low[v] = min(low[v], low[w])
-            elif w in on:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            comp = []
-            while True:
-                w = stack.pop()
-                on.discard(w)
-                comp.append(w)
-                if w == v:
-                    break
-            if len(comp) > 1:
-                circles.append(sorted(comp))
-
-    for v in list(graph):
-        if v not in index:
-            visit(v)
+    circles = [sorted(c) for c in _cycles({m: {t for t in ts if t in graph} for m, ts in graph.items()})]
     assert not circles, f"files importing each other: {circles}"

@@ -54,9 +54,11 @@ def check_data_keys(data_cfg: Mapping) -> None:
     """The data config's keys against its kind's schema (:func:`tcn_ahrs.config.data.data_schema`),
     when it is loaded: a misspelt key (``data.tarin``) is an error naming the expected set."""
     from ..config import check_keys
-    from ..config.data import data_schema
+    from ..config.data import GeneralData, data_schema
 
-    check_keys(data_cfg, data_schema(_get(data_cfg, "name")), "data")
+    # several datasets as one are GeneralData whatever their name; callers clear `fold` generically
+    schema = GeneralData if _get(data_cfg, "parts") is not None else data_schema(_get(data_cfg, "name"))
+    check_keys(data_cfg, schema, "data", extra=("fold",))
 
 
 def builtin_datasets() -> List[str]:

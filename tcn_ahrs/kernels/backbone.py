@@ -51,8 +51,8 @@ sqrt, sin, cos, tan, exp, atan2, asin, fabs = (ops.sqrt, ops.sin, ops.cos, ops.t
                                                ops.asin, ops.fabs)
 fmax, clip = ops.fmax, ops.clip
 PI = math.pi
-# the quaternion product and rotation, 3x3 products of kernels/quat.py, in this table's reading
-qmul, qrot, mat3_mul, mat3_mul_t = jit(_quat.qmul), jit(_quat.qrot), jit(_quat.mat3_mul), jit(_quat.mat3_mul_t)
+# the quaternion product and rotation, the 3x3 product A Bᵀ of kernels/quat.py, in this table's reading
+qmul, qrot, mat3_mul_t = jit(_quat.qmul), jit(_quat.qrot), jit(_quat.mat3_mul_t)
 
 # ------------------------------------------------------------------ coefficients
 @jit
@@ -140,7 +140,7 @@ def lp3(s, c, f, x0, x1, x2, at_b, at_a, tau, ts, held):
     return y0, y1, y2
 
 # ------------------------------------------------------------------ quaternion helpers
-# (qmul, qrot, mat3_mul, mat3_mul_t: kernels/quat.py, bound with the ops above)
+# (qmul, qrot, mat3_mul_t: kernels/quat.py, bound with the ops above)
 @jit
 def quat6(s):
     return qmul(s[S_AQ], s[S_AQ + 1], s[S_AQ + 2], s[S_AQ + 3], s[S_GQ], s[S_GQ + 1], s[S_GQ + 2], s[S_GQ + 3])
@@ -341,8 +341,8 @@ def bias_update(s, p, c, v0, v1, bias_trust):
     # A = P H^T, S = W + H P H^T, K = A S^-1
     A00, A01, A02, A10, A11, A12, A20, A21, A22 = mat3_mul_t(P00, P01, P02, P10, P11, P12, P20, P21, P22,
                                                              H00, H01, H02, H10, H11, H12, H20, H21, H22)
-    S00, S01, S02, S10, S11, S12, S20, S21, S22 = mat3_mul(H00, H01, H02, H10, H11, H12, H20, H21, H22,
-                                                           A00, A01, A02, A10, A11, A12, A20, A21, A22)
+    S00, S01, S02, S10, S11, S12, S20, S21, S22 = mat3_mul_t(H00, H01, H02, H10, H11, H12, H20, H21, H22,  # H (Aᵀ)ᵀ
+                                                             A00, A10, A20, A01, A11, A21, A02, A12, A22)
     S00, S11, S22 = W0 + S00, W0 + S11, W2 + S22
     # S^-1 by cofactors
     c00, c01, c02 = S11 * S22 - S12 * S21, S02 * S21 - S01 * S22, S01 * S12 - S02 * S11
@@ -351,8 +351,8 @@ def bias_update(s, p, c, v0, v1, bias_trust):
     det = S00 * c00 + S01 * c10 + S02 * c20
     c00, c01, c02, c10, c11, c12, c20, c21, c22 = (c00 / det, c01 / det, c02 / det, c10 / det, c11 / det,
                                                    c12 / det, c20 / det, c21 / det, c22 / det)
-    K00, K01, K02, K10, K11, K12, K20, K21, K22 = mat3_mul(A00, A01, A02, A10, A11, A12, A20, A21, A22,
-                                                           c00, c01, c02, c10, c11, c12, c20, c21, c22)
+    K00, K01, K02, K10, K11, K12, K20, K21, K22 = mat3_mul_t(A00, A01, A02, A10, A11, A12, A20, A21, A22,  # A (Cᵀ)ᵀ
+                                                             c00, c10, c20, c01, c11, c21, c02, c12, c22)
     # b <- clip(b + trust K e); the learned bias trust scales the increment (0: frozen)
     nb0 = clip(b0 + bias_trust * (K00 * e0 + K01 * e1 + K02 * e2), -cl, cl)
     nb1 = clip(b1 + bias_trust * (K10 * e0 + K11 * e1 + K12 * e2), -cl, cl)

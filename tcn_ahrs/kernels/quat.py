@@ -104,19 +104,11 @@ def rodrigues(px: float, py: float, pz: float
 def mat3_mul_t(a00: float, a01: float, a02: float, a10: float, a11: float, a12: float, a20: float, a21: float,
                a22: float, b00: float, b01: float, b02: float, b10: float, b11: float, b12: float, b20: float,
                b21: float, b22: float) -> Tuple[float, float, float, float, float, float, float, float, float]:
-    """A Bᵀ of two 3x3 matrices given row by row, row by row (the backbone's bias filter: P Hᵀ, K Aᵀ)."""
+    """A Bᵀ of two 3x3 matrices given row by row, row by row (the backbone's bias filter: P Hᵀ, K Aᵀ;
+    A B as A (Bᵀ)ᵀ, B passed transposed)."""
     return (a00 * b00 + a01 * b01 + a02 * b02, a00 * b10 + a01 * b11 + a02 * b12, a00 * b20 + a01 * b21 + a02 * b22,
             a10 * b00 + a11 * b01 + a12 * b02, a10 * b10 + a11 * b11 + a12 * b12, a10 * b20 + a11 * b21 + a12 * b22,
             a20 * b00 + a21 * b01 + a22 * b02, a20 * b10 + a21 * b11 + a22 * b12, a20 * b20 + a21 * b21 + a22 * b22)
-
-
-def mat3_mul(a00: float, a01: float, a02: float, a10: float, a11: float, a12: float, a20: float, a21: float,
-             a22: float, b00: float, b01: float, b02: float, b10: float, b11: float, b12: float, b20: float,
-             b21: float, b22: float) -> Tuple[float, float, float, float, float, float, float, float, float]:
-    """A B of two 3x3 matrices given row by row, row by row (the bias filter: H A, A S⁻¹)."""
-    return (a00 * b00 + a01 * b10 + a02 * b20, a00 * b01 + a01 * b11 + a02 * b21, a00 * b02 + a01 * b12 + a02 * b22,
-            a10 * b00 + a11 * b10 + a12 * b20, a10 * b01 + a11 * b11 + a12 * b21, a10 * b02 + a11 * b12 + a12 * b22,
-            a20 * b00 + a21 * b10 + a22 * b20, a20 * b01 + a21 * b11 + a22 * b21, a20 * b02 + a21 * b12 + a22 * b22)
 
 
 # numba's reading (the [fast] extra): compiled once for every loop of the project; without numba
