@@ -248,3 +248,12 @@ def test_a_simulated_clock_offset_is_fitted():
     a = ft._lag(0.04)({"t": seq.time, "gyr": seq.gyro, "acc": seq.accel, "mag": seq.mag, "quat": seq.quat.copy()})
     agree = ground_truth_agreement(_seq(a, check=False))
     assert abs(agree["time_offset_s"] - 0.04) <= 0.011 and agree["misalignment_deg"] < 1.0, agree
+
+
+@needs_broad
+def test_an_all_zero_magnetometer_on_a_real_clip_loads_as_six_axis():
+    """BROAD's slow rotation with its magnetometer columns all zero: refused before as "is it in
+    Gauss?" even for a 6-axis model; now a 6-axis recording, said."""
+    with pytest.warns(UserWarning, match="reads 0 on every sample"):
+        seq = _seq(_clip("slow", ft._zero_mag))
+    assert seq.mag is None and seq.num_axes == 6
