@@ -21,7 +21,7 @@ from ..kernels.script_ops import script_kernel
 from ..model.closed_loop_step import split_row
 from .fused import fuse_residual
 from .inputs import ExportError
-from .open_loop import StreamingAHRS
+from .open_loop import STREAMING_ATTRIBUTES, StreamingAHRS
 
 _KS = script_kernel(K)
 _coefficients, _gyro_update, _acc_update, _mag_update, _quat6, _quat9, qmul, _qrot = (
@@ -38,31 +38,10 @@ class ResidualStreaming(StreamingAHRS):
     sample 0, as the batch model does). A non-finite reading or a dt that is not finite and > 0
     raises ValueError before any state changes."""
 
-    hidden_weights: List[Tensor]  # (TorchScript reads only this class's own annotations)
-    hidden_biases: List[Tensor]
-    hidden_dilations: List[int]
-    metadata_json: str
-    ring_buffers: List[Tensor]
-    spans: List[int]
-    tap_index: List[Tensor]
-    tap_offsets: List[int]
-    acc_gain_list: List[float]
-    mag_gain_list: List[float]
-    step_weights: List[Tensor]
-    step_biases: List[Tensor]
-    chunk_weights: List[Tensor]
-    chunk_biases: List[Tensor]
-    q_pre: List[float]
-    q_pre2: List[float]
-    q_att: List[float]
-    params: List[float]
-    bias0: List[float]
-    q_start: List[float]
-    m_conj: List[float]
-    backbone_state: List[float]
-    coeff: List[float]
-    trust_scales: List[float]
-    initial_state: List[float]
+    __annotations__ = {**STREAMING_ATTRIBUTES,  # TorchScript's attribute types (open_loop.STREAMING_ATTRIBUTES)
+                       "params": List[float], "bias0": List[float], "q_start": List[float], "m_conj": List[float],
+                       "backbone_state": List[float], "coeff": List[float], "trust_scales": List[float],
+                       "initial_state": List[float]}
 
     def __init__(self, model: nn.Module, metadata: Mapping[str, Any]):
         if getattr(model, "backbone", None) is None:

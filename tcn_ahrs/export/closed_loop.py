@@ -17,7 +17,7 @@ from ..model.closed_loop_step import split_row
 from ..model.closed_loop import frozen_window, window_samples
 from .fused import fuse_model
 from .inputs import ExportError, InputChecks
-from .open_loop import StreamingAHRS
+from .open_loop import STREAMING_ATTRIBUTES, StreamingAHRS
 
 
 def rest_window(closed: nn.Module, metadata: Mapping[str, Any]) -> int:
@@ -95,29 +95,9 @@ class ClosedLoopStreaming(StreamingAHRS):
     batch module's loop and the library's compiled loop run.
     """
 
-    hidden_weights: List[Tensor]  # (TorchScript reads only this class's own annotations)
-    hidden_biases: List[Tensor]
-    hidden_dilations: List[int]
-    metadata_json: str
-    ring_buffers: List[Tensor]
-    spans: List[int]
-    tap_index: List[Tensor]
-    tap_offsets: List[int]
-    acc_gain_list: List[float]
-    mag_gain_list: List[float]
-    step_weights: List[Tensor]
-    step_biases: List[Tensor]
-    chunk_weights: List[Tensor]
-    chunk_biases: List[Tensor]
-    q_pre: List[float]
-    q_pre2: List[float]
-    q_att: List[float]
-    state: List[float]
-    east_ref: List[float]
-    rest_ring: List[float]
-    rest_sums: List[float]
-    last_reading: List[float]
-    last_gyro: List[float]
+    __annotations__ = {**STREAMING_ATTRIBUTES,  # TorchScript's attribute types (open_loop.STREAMING_ATTRIBUTES)
+                       "state": List[float], "east_ref": List[float], "rest_ring": List[float],
+                       "rest_sums": List[float], "last_reading": List[float], "last_gyro": List[float]}
 
     def __init__(self, model: nn.Module, metadata: Mapping[str, Any]):
         if model.closed is None:

@@ -148,6 +148,15 @@ class BatchAHRS(InputChecks):
 
 
 # ================================================================= streaming module
+STREAMING_ATTRIBUTES = {
+    "hidden_weights": List[Tensor], "hidden_biases": List[Tensor], "hidden_dilations": List[int], "metadata_json": str,
+    "ring_buffers": List[Tensor], "spans": List[int], "tap_index": List[Tensor], "tap_offsets": List[int],
+    "acc_gain_list": List[float], "mag_gain_list": List[float], "step_weights": List[Tensor],
+    "step_biases": List[Tensor], "chunk_weights": List[Tensor], "chunk_biases": List[Tensor], "q_pre": List[float],
+    "q_pre2": List[float], "q_att": List[float]}
+"""The streaming modules' TorchScript-typed attributes (a class's own ``__annotations__``)."""
+
+
 class StreamingAHRS(BatchAHRS):
     """One sample per call (TorchScript-able). ``reset(q0)``, ``step(sample (C,), dt)`` ->
     ``(quat (4,), omega (3,))``; ``forward`` = ``step``; ``run(imu, dt, q0)`` = reset + steps.
@@ -166,23 +175,9 @@ class StreamingAHRS(BatchAHRS):
     arithmetic, so it uses as few tensor ops as possible (~30 per sample).
     """
 
-    hidden_weights: List[Tensor]  # (TorchScript reads only this class's own annotations)
-    hidden_biases: List[Tensor]
-    hidden_dilations: List[int]
-    metadata_json: str
-    ring_buffers: List[Tensor]
-    spans: List[int]
-    tap_index: List[Tensor]
-    tap_offsets: List[int]
-    acc_gain_list: List[float]
-    mag_gain_list: List[float]
-    step_weights: List[Tensor]
-    step_biases: List[Tensor]
-    chunk_weights: List[Tensor]
-    chunk_biases: List[Tensor]
-    q_pre: List[float]
-    q_pre2: List[float]
-    q_att: List[float]
+    # the attributes TorchScript types; it reads only a class's own __annotations__, so each
+    # streaming subclass starts its own from this one dict (STREAMING_ATTRIBUTES), not a copy
+    __annotations__ = dict(STREAMING_ATTRIBUTES)
 
     def __init__(self, fused: Dict[str, Any], metadata: Mapping[str, Any], net_dtype: torch.dtype = torch.float32):
         if net_dtype == torch.bfloat16:
