@@ -1,8 +1,8 @@
 #!/usr/bin/env python
 """Leave-recordings-out cross-validation of the learned AHRS (see conf/crossval.yaml).
 
-    python scripts/crossval.py experiment=broad9_cl                 # every fold of data.folds
-    python scripts/crossval.py experiment=broad9_cl crossval.folds=[0]
+    python scripts/crossval.py experiment=broad9_closed_loop                 # every fold of data.folds
+    python scripts/crossval.py experiment=broad9_closed_loop crossval.folds=[0]
     python scripts/crossval.py data=euroc model=ahrs6 crossval.tune=true
 
 A killed run resumes: each fold's training continues from its last.ckpt, finished folds are

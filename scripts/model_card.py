@@ -1,10 +1,11 @@
 """A shipped checkpoint's model card, generated from the runs' JSON.
 
     python scripts/model_card.py NAME CKPT CROSSVAL_JSON TRANSFER_JSON [RELEASE_LOG [SEARCH_JSON]] > checkpoints/NAME.md
-    python scripts/model_card.py general6 CKPT LODO_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/general6.md
+    python scripts/model_card.py general6 CKPT LODO_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/general6_residual.md
     python scripts/model_card.py NAME MODEL SEARCH_JSON TRANSFER_JSON [RELEASE_LOG] > checkpoints/NAME.md
 
-NAME: the experiment prefix (``broad9`` for ``experiment=broad9_res``); CROSSVAL_JSON: its nested
+NAME: the shipped model's name, which is also its recipe's experiment (``broad9_residual``:
+``checkpoints/broad9_residual.ckpt``, ``experiment=broad9_residual``); CROSSVAL_JSON: its nested
 folds (``scripts/crossval.py``); LODO_JSON: for a general model, its recipe's leave-one-dataset-out
 table (``scripts/benchmark.py lodo``); TRANSFER_JSON: the cross-dataset matrix
 (``scripts/benchmark.py transfer``); RELEASE_LOG: the release training's output (backbone knobs,
@@ -22,6 +23,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from nested_table import rows  # noqa: E402
 
 from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint  # noqa: E402
+from tcn_ahrs.config.renamed import CHECKPOINTS, experiment_name  # noqa: E402
+
+
+def matrix_row(tr_json, name):
+    """The transfer matrix's row of the shipped model ``name`` (a matrix run before the renames keys
+    it by the old name: tcn_ahrs/config/renamed.py)."""
+    matrix = json.loads(Path(tr_json).read_text())["matrix"]
+    old = next((o for o, n in CHECKPOINTS.items() if n == name), None)
+    return matrix.get(name) or matrix.get(old, {})
 
 
 def cost_lines(model, log=None):
@@ -52,7 +62,7 @@ def transfer_rows(row):
 
 
 def general(name, ckpt, lodo_json, tr_json, log=None):
-    """The card of a general model (``experiment=<name>_res``): no nested folds of one dataset;
+    """The card of a general model (``experiment=<name>``): no nested folds of one dataset;
     its recipe's leave-one-dataset-out table instead."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from tcn_ahrs.experiments.lodo import markdown as lodo_markdown
@@ -65,7 +75,7 @@ def general(name, ckpt, lodo_json, tr_json, log=None):
     data = Path(ckpt).read_bytes()
     out = [f"# `{Path(ckpt).name}` — model card\n",
            f"- **Model**: one {meta['layout']['axes']}-axis model for any IMU: learned residuals on the VQF-grade backbone "
-           f"(`experiment={name}_res`), two causal TCNs (receptive field {model.receptive_field} samples).",
+           f"(`experiment={name}`), two causal TCNs (receptive field {model.receptive_field} samples).",
            f"- **Rates**: trained on windows resampled to random rates {lo:g}–{hi:g} Hz (irregular steps too), so any "
            "recording in that range runs as the model, without a warning and without resampling; outside it, as the backbone.",
            f"- **Data**: the training parts of `{meta.get('data')}` (every dataset the same number of windows per epoch), "
@@ -76,7 +86,7 @@ def general(name, ckpt, lodo_json, tr_json, log=None):
            f"- **Inference knobs** (chosen on the validation parts): `{knobs}`.",
            f"- **Size / sha256**: {len(data) / 1e6:.2f} MB, `{hashlib.sha256(data).hexdigest()}`"]
     out += cost_lines(model, log)
-    out += ["", "```bash", f"python scripts/train.py experiment={name}_res run_dir=runs/general/{name}",
+    out += ["", "```bash", f"python scripts/train.py experiment={name} run_dir=runs/general/{name}",
             f"python scripts/release_checkpoint.py runs/general/{name}/checkpoints/last.ckpt checkpoints/{name}.ckpt", "```", ""]
     if lodo_json and Path(lodo_json).is_file():
         lj = json.loads(Path(lodo_json).read_text())
@@ -84,12 +94,12 @@ def general(name, ckpt, lodo_json, tr_json, log=None):
                 lodo_markdown(lj)]
     else:
         out += ["## Datasets it never saw", "",
-                f"Not measured for this recipe: `python scripts/benchmark.py lodo lodo.experiment={name}_res "
+                f"Not measured for this recipe: `python scripts/benchmark.py lodo lodo.experiment={name} "
                 "'lodo.datasets=[broad,oxiod]'` would leave BROAD or OxIOD out (not run yet: CPU time).", ""]
     out += ["## Held-out test recordings (`python scripts/benchmark.py transfer`)", "",
             "| data (split) | this checkpoint | best classical (AAE) | best inclination | never worse? |",
             "|---|---|---|---|---|"]
-    out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
+    out += transfer_rows(matrix_row(tr_json, name))
     out += ["", "**Limits**: the networks learned their gains at the training datasets' own rates; on BROAD's test trials "
             "resampled to 50-1000 Hz they cost accuracy against the backbone at the same rate (the rate sweep in "
             "`docs/results/general_2026-12-03.md`): the model runs at any rate, its learned part helps at the rates it "
@@ -138,8 +148,8 @@ def search_card(name, model, search_json, tr_json, log=None):
         m_ = re.search(r"training took ([0-9.]+) s", Path(log).read_text(errors="replace")) if log and Path(log).is_file() else None
         if m_:
             out.append(f"- **Training time**: {float(m_.group(1)):.0f} s on this 2-core CPU (no GPU).")
-        out += ["", "```bash", f"tcn-ahrs train experiment={name}_cl train.all_recordings=true run_dir=runs/release/{name}_cl",
-                f"python scripts/release_checkpoint.py runs/release/{name}_cl/checkpoints/last.ckpt checkpoints/{name}.ckpt",
+        out += ["", "```bash", f"tcn-ahrs train experiment={name} train.all_recordings=true run_dir=runs/release/{name}",
+                f"python scripts/release_checkpoint.py runs/release/{name}/checkpoints/last.ckpt checkpoints/{name}.ckpt",
                 "```"]
     out += ["", "**Limits**: chosen for this dataset's device. On other devices it is not never worse (the transfer "
             "table below): a tuned filter's knobs and a learned model's bias prior belong to their IMU; a recording at "
@@ -149,7 +159,7 @@ def search_card(name, model, search_json, tr_json, log=None):
             "## Recordings it never saw (`python scripts/benchmark.py transfer`)", "",
             "| data (split) | this model | best classical (AAE) | best inclination | never worse? |",
             "|---|---|---|---|---|"]
-    out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
+    out += transfer_rows(matrix_row(tr_json, name))
     print("\n".join(out))
 
 
@@ -182,7 +192,8 @@ def main(name, ckpt, cv_json, tr_json, log=None, search_json=None):
     # the recipe: what the file records (tcn-ahrs train stores its overrides); files trained before
     # that record say so — the card does not guess it from the file's name
     recipe = meta.get("recipe")
-    exp = next((o.split("=", 1)[1] for o in (recipe or {}).get("overrides", []) if o.startswith("experiment=")), None)
+    exp = next((experiment_name(o.split("=", 1)[1]) for o in (recipe or {}).get("overrides", [])
+                if o.startswith("experiment=")), None)   # a recipe recorded under an old name: its new one
     said = (f"`{recipe['command']} {' '.join(recipe['overrides'])}`" if recipe
             else "recipe not recorded in the file (trained before checkpoints kept it)")
     channels = (meta["model"].get("tcn") or {}).get("channels")
@@ -216,7 +227,7 @@ def main(name, ckpt, cv_json, tr_json, log=None, search_json=None):
     out += ["", "## Recordings it never saw (`python scripts/benchmark.py transfer`)", "",
             "| data (split) | this checkpoint | best classical (AAE) | best inclination | never worse? |",
             "|---|---|---|---|---|"]
-    out += transfer_rows(json.loads(Path(tr_json).read_text())["matrix"].get(name, {}))
+    out += transfer_rows(matrix_row(tr_json, name))
     if search_json:
         out += search_section(name, search_json)
     print("\n".join(out))

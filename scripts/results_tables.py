@@ -35,7 +35,7 @@ Blocks (:data:`BLOCKS`):
     holding ``<d>_true/`` and ``<d>_false/``) into ``docs/results/json/device_check.json``.
 ``lodo6`` / ``lodo9`` (docs/results.md)
     Leave one dataset out, ``tcn-ahrs benchmark lodo`` (6 axes) and ``tcn-ahrs benchmark lodo
-    lodo.experiment=general9_res lodo.runs=runs/lodo9`` → ``runs/benchmark/lodo/lodo.json``, copied to
+    lodo.experiment=general9_residual lodo.runs=runs/lodo9`` → ``runs/benchmark/lodo/lodo.json``, copied to
     ``docs/results/json/lodo<axes>.json``, rendered by :func:`tcn_ahrs.experiments.lodo.markdown`.
 ``finetune`` (docs/results.md)
     Fine-tuning on two recordings of a device the general model never saw, ``tcn-ahrs benchmark
@@ -47,7 +47,7 @@ Blocks (:data:`BLOCKS`):
     'finetune.modes=[gt]'`` → ``docs/results/json/finetune_crossfit.json``.
 ``rates`` (docs/results.md)
     The general models on BROAD's test trials resampled to 50-1000 Hz, ``tcn-ahrs benchmark transfer
-    'transfer.ckpts={general6: checkpoints/general6.ckpt, general9: checkpoints/general9.ckpt}'
+    'transfer.ckpts={general6: checkpoints/general6_residual.ckpt, general9: checkpoints/general9_residual.ckpt}'
     'transfer.datasets=[broad]' 'transfer.rates=[50,100,200,500,1000]'`` → ``rates.json``, copied to
     ``docs/results/json/rates.json``, rendered by :func:`tcn_ahrs.experiments.transfer.rates_markdown`.
 ``fault_trial`` (docs/troubleshooting.md)

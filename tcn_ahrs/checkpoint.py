@@ -125,7 +125,7 @@ def check_layout(ckpt: Mapping, axes: int, path="checkpoint", data_axes: Optiona
                 f"({', '.join(meta['layout']['channels'])}) but the data provides {axes} axes; ")
         if got > int(axes) and data_axes is not None and int(data_axes) < got:
             raise CheckpointError(head + "this dataset has no magnetometer: use a 6-axis checkpoint "
-                                  "(e.g. checkpoints/general6.ckpt)")
+                                  "(e.g. checkpoints/general6_residual.ckpt)")
         raise CheckpointError(head + f"use a {axes}-axis checkpoint, or evaluate this one with data.axes={got}"
                               + (" (drops the magnetometer)" if got == 6 else ""))
 

@@ -1,9 +1,9 @@
 """The command line: ``tcn-ahrs COMMAND [key=value ...]`` (also ``python -m tcn_ahrs``, and
 ``python scripts/COMMAND.py`` in a checkout).
 
-    tcn-ahrs train experiment=broad9_res data.fold=0
+    tcn-ahrs train experiment=broad9_residual data.fold=0
     tcn-ahrs evaluate data=generic data.root=DIR data.split=all
-    tcn-ahrs export ckpt=checkpoints/broad9.ckpt out=model.pt
+    tcn-ahrs export ckpt=checkpoints/broad9_residual.ckpt out=model.pt
     tcn-ahrs benchmark transfer
 
 Each command is one Hydra app on a main config shipped in the package (``conf/``), so an
@@ -20,6 +20,7 @@ from typing import Callable, Dict, List, NamedTuple, Optional
 
 from .app import EXIT_USER_ERROR, check_overrides, quiet_third_party, user_errors
 from .conf import SEARCH_PATH
+from .config.renamed import experiment_overrides
 
 
 class Command(NamedTuple):
@@ -114,6 +115,9 @@ def main(argv: Optional[List[str]] = None) -> None:
     command = COMMANDS[name]
     if name == "benchmark":
         args = mode_as_override(args)
+    args, notes = experiment_overrides(args)   # an old experiment name runs its new one, said
+    for note in notes:
+        print(note)
     check_overrides(command.config, args)
     target = command.target
 

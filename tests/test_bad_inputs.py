@@ -441,7 +441,7 @@ def test_compiled_streaming_refuses_spikes_huge_steps_and_a_matrix_sample():
 def test_a_checkpoint_with_nan_weights_is_refused_at_load(tmp_path):
     from tcn_ahrs.checkpoint import CheckpointError, model_from_checkpoint
 
-    ck = torch.load(CKPTS / "broad6.ckpt", map_location="cpu", weights_only=False)
+    ck = torch.load(CKPTS / "broad6_residual.ckpt", map_location="cpu", weights_only=False)
     key = next(k for k, v in ck["state_dict"].items() if v.is_floating_point() and v.numel() > 1)
     ck["state_dict"][key] = ck["state_dict"][key].clone()
     ck["state_dict"][key].view(-1)[0] = math.nan
@@ -520,7 +520,7 @@ def test_export_writes_both_files_or_neither_and_refuses_to_overwrite(tmp_path, 
 
     monkeypatch.setattr(ex, "export_streaming", killed)  # dies after the batch file is written
     with pytest.raises(KeyboardInterrupt):
-        ex.export_checkpoint(CKPTS / "broad6.ckpt", out, overwrite=True)
+        ex.export_checkpoint(CKPTS / "broad6_residual.ckpt", out, overwrite=True)
     assert (out.read_bytes(), ex.streaming_path(out).read_bytes()) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.pt", "m_streaming.pt"]
 
@@ -772,11 +772,11 @@ def test_a_9_axis_checkpoint_on_data_without_magnetometer_gets_advice_that_can_w
     from tcn_ahrs.checkpoint import CheckpointError, check_layout, load_checkpoint
     from tcn_ahrs.evaluate.main import dataset_axes
 
-    ck = load_checkpoint(CKPTS / "broad9.ckpt")
+    ck = load_checkpoint(CKPTS / "broad9_residual.ckpt")
     assert dataset_axes("euroc") == 6 and dataset_axes("tumvi") == 6 and dataset_axes("broad") == 9
     with pytest.raises(CheckpointError, match="no magnetometer: use a 6-axis checkpoint") as e:
-        check_layout(ck, 6, "broad9.ckpt", data_axes=dataset_axes("euroc"))
+        check_layout(ck, 6, "broad9_residual.ckpt", data_axes=dataset_axes("euroc"))
     assert "data.axes=9" not in str(e.value)
     # a 9-axis dataset read as 6 axes: data.axes=9 does work there, and is what it says
     with pytest.raises(CheckpointError, match="data.axes=9"):
-        check_layout(ck, 6, "broad9.ckpt", data_axes=dataset_axes("broad"))
+        check_layout(ck, 6, "broad9_residual.ckpt", data_axes=dataset_axes("broad"))

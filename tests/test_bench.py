@@ -107,10 +107,10 @@ def test_deploy_section_rows_goals_and_footprint(tmp_path):
     if shutil.which("cc") is None and shutil.which("gcc") is None:
         pytest.skip("no C compiler")
     pytest.importorskip("vqf")
-    res = bench_deploy({"ckpt": "checkpoints/broad9.ckpt", "rate": 285.71, "samples": 40, "warmup": 5,
+    res = bench_deploy({"ckpt": "checkpoints/broad9_residual.ckpt", "rate": 285.71, "samples": 40, "warmup": 5,
                         "slow_steps": 3, "c": True, "onnx": False, "export": False,
                         "footprint_glob": "checkpoints/*.ckpt,checkpoints/residual/*.ckpt",
-                        "c_models": ["checkpoints/residual/oxiod9.ckpt", "checkpoints/euroc6_small.ckpt", "checkpoints/nope.ckpt"]})
+                        "c_models": ["checkpoints/residual/oxiod9.ckpt", "checkpoints/euroc6_residual_small.ckpt", "checkpoints/nope.ckpt"]})
     names = [r["name"] for r in res["rows"]]
     assert "C runtime run (float backbone, -O2)" in names and "VQF updateBatch (C++ loop)" in names
     assert res["live_networks"] == []
@@ -120,6 +120,6 @@ def test_deploy_section_rows_goals_and_footprint(tmp_path):
     assert small["axes"] == 6 and small["state_bytes"] < 64 * 1024 < ox["state_bytes"]  # each model its own library
     assert "no checkpoint" in nope["skipped"]
     foot = {f["checkpoint"]: f for f in res["footprint"]}
-    assert foot["broad9"]["c_ring_bytes"] == 0 and foot["euroc6_small"]["c_ring_bytes"] < foot["residual/euroc6"]["c_ring_bytes"]
+    assert foot["broad9_residual"]["c_ring_bytes"] == 0 and foot["euroc6_residual_small"]["c_ring_bytes"] < foot["residual/euroc6"]["c_ring_bytes"]
     md = markdown(res)
-    assert "| euroc6_small | 6 | gyro, trust |" in md and "Networks in `broad9.ckpt`'s C runtime: none" in md
+    assert "| euroc6_residual_small | 6 | gyro, trust |" in md and "Networks in `broad9_residual.ckpt`'s C runtime: none" in md

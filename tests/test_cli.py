@@ -56,10 +56,11 @@ def test_no_command_prints_the_commands(capsys):
 def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
     """Build the wheel from the sources, install it into an empty folder (no editable install, no
     checkout on the path) and run ``tcn-ahrs evaluate`` there on the built-in simulator: the
-    configs must come from inside the wheel."""
+    configs and the shipped models (run by name) must come from inside the wheel."""
     src = tmp_path / "src"
     src.mkdir()
-    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "pyproject.toml", "setup.py", "README.md", "tcn_ahrs", "conf"],
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "pyproject.toml", "setup.py", "README.md", "tcn_ahrs", "conf",
+                            "checkpoints"],
                            cwd=REPO, capture_output=True, text=True, check=True).stdout.split()
     if not files:
         pytest.skip("not a git checkout")
@@ -76,6 +77,9 @@ def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
                     str(wheel)], check=True, capture_output=True)
     assert (site / "tcn_ahrs" / "conf" / "data" / "simulated.yaml").is_file()
     assert (site / "tcn_ahrs" / "export" / "c" / "model.c.in").is_file()  # format=c's templates
+    shipped = site / "tcn_ahrs" / "checkpoints"
+    assert {"general6_residual.ckpt", "general9_residual.ckpt", "tumvi6_ecf.json"} <= {p.name for p in shipped.iterdir()}
+    assert not (shipped / "closed_loop").exists()  # the other families' files stay in the checkout
 
     work = tmp_path / "elsewhere"
     work.mkdir()
@@ -84,10 +88,11 @@ def test_wheel_runs_evaluate_outside_the_repository(tmp_path):
                            capture_output=True, text=True, check=True).stdout.strip()
     assert where.startswith(str(site)), where  # the wheel's copy, not the checkout
     out = work / "eval"
-    run = subprocess.run([str(site / "bin" / "tcn-ahrs"), "evaluate", f"ckpt={REPO / 'checkpoints' / 'broad9.ckpt'}",
+    run = subprocess.run([str(site / "bin" / "tcn-ahrs"), "evaluate", "ckpt=broad9_residual",   # by name, from the wheel
                           "data=simulated", "data.split=test", f"out={out}", "plots=false", "trajectories=false"],
                          cwd=work, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]
+    assert f"the shipped {shipped / 'broad9_residual.ckpt'}" in run.stdout
     results = json.loads((out / "results.json").read_text())
     assert results, "evaluate wrote no results"
     # the default (no ckpt=) needs no file of the checkout: the backbone with VQF's defaults
@@ -105,3 +110,40 @@ def test_a_rerun_child_takes_its_command_from_the_environment(monkeypatch, capsy
     with pytest.raises(SystemExit) as e:
         cli.main(["data=nope"])
     assert e.value.code == 2 and "evaluate config" in capsys.readouterr().err
+
+
+def test_old_experiment_names_run_their_new_config(capsys):
+    """The renames (README, "Renamed"): every old experiment name maps to a config that exists and
+    the old file is gone; the command line runs the new one and says so."""
+    from tcn_ahrs.app import check_overrides
+    from tcn_ahrs.conf import CONF_DIR
+    from tcn_ahrs.config.renamed import EXPERIMENTS, experiment_overrides
+
+    for old, new in EXPERIMENTS.items():
+        assert (CONF_DIR / "experiment" / f"{new}.yaml").is_file(), new
+        assert not (CONF_DIR / "experiment" / f"{old}.yaml").exists(), old
+    args, notes = experiment_overrides(["experiment=broad9_res", "data.fold=0", "+experiment=euroc6"])
+    assert args == ["experiment=broad9_residual", "data.fold=0", "+experiment=euroc6_open_loop"]
+    assert notes == ['note: experiment=broad9_res is now experiment=broad9_residual (README, "Renamed")',
+                     'note: experiment=euroc6 is now experiment=euroc6_open_loop (README, "Renamed")']
+    check_overrides("train", ["experiment=euroc6_residual_small"])   # its defaults name the renamed residual
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", "experiment=broad9_res", "data=nope"])
+    assert e.value.code == 2
+    assert "is now experiment=broad9_residual" in capsys.readouterr().out
+
+
+def test_shipped_models_by_new_and_old_name(capsys):
+    from tcn_ahrs.checkpoints import SHIPPED_DIR
+    from tcn_ahrs.config.renamed import CHECKPOINTS
+    from tcn_ahrs.evaluate.main import shipped
+
+    for old, new in CHECKPOINTS.items():
+        assert shipped(new) in (str(SHIPPED_DIR / f"{new}.ckpt"), str(SHIPPED_DIR / f"{new}.json"))
+        assert shipped(old) == shipped(new)
+        assert not (SHIPPED_DIR / f"{old}.ckpt").exists() and not (SHIPPED_DIR / f"{old}.json").exists()
+    assert shipped("checkpoints/broad9.ckpt") == str(SHIPPED_DIR / "broad9_residual.ckpt")
+    out = capsys.readouterr().out
+    assert 'ckpt=general9 is now ckpt=general9_residual (README, "Renamed")' in out
+    with pytest.raises(FileNotFoundError, match="shipped: broad6_residual"):
+        shipped("nope")

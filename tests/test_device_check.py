@@ -78,7 +78,7 @@ def test_handheld_tum_vi_never_rests_and_euroc_reads_its_bias():
 
 def test_evaluate_without_a_checkpoint_checks_the_device_first(tmp_path):
     """``tcn-ahrs evaluate`` with no ckpt (the default: the backbone with VQF's defaults) and with
-    ``ckpt=general6`` (a named general model) on a 6-axis device with a 5 °/s gyro bias: the check
+    ``ckpt=general6_residual`` (a named general model) on a 6-axis device with a 5 °/s gyro bias: the check
     is printed per recording and every method runs on the corrected readings (without it VQF and
     the backbone are far off: the bias is beyond their clip)."""
     import json
@@ -92,7 +92,7 @@ def test_evaluate_without_a_checkpoint_checks_the_device_first(tmp_path):
                np.column_stack([seq.time, seq.gyro, seq.accel, seq.quat]), delimiter=",", comments="",
                fmt="%.10g", header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,quat_w,quat_x,quat_y,quat_z")
     aae = {}
-    for ckpt in ([], ["ckpt=general6"]):
+    for ckpt in ([], ["ckpt=general6_residual"]):
         for mode in ("auto", "false"):
             out = tmp_path / f"{mode}{len(ckpt)}"
             r = subprocess.run([sys.executable, "scripts/evaluate.py", "data=generic", f"data.root={tmp_path / 'data'}",
@@ -126,7 +126,7 @@ def test_evaluate_checks_the_device_for_a_model_trained_on_checked_recordings(tm
     from tcn_ahrs.checkpoint import load_checkpoint
 
     repo = Path(__file__).resolve().parents[1]
-    ck = load_checkpoint(repo / "checkpoints" / "general6.ckpt")
+    ck = load_checkpoint(repo / "checkpoints" / "general6_residual.ckpt")
     layout = {k: v for k, v in ck["tcn_ahrs"]["layout"].items() if k != "device_check"}
     ck["tcn_ahrs"] = {**ck["tcn_ahrs"], "layout": {**layout, **({"device_check": True} if flagged else {})}}
     torch.save(ck, tmp_path / "model.ckpt")

@@ -94,7 +94,7 @@ def test_a_folder_evaluates_every_good_recording_and_lists_the_refused(tmp_path,
         with h5py.File(root / f"rec{i}.h5", "w") as f:
             for key, val in (("t", s.time), ("gyr", gyro), ("acc", s.accel), ("mag", s.mag), ("quat", s.quat)):
                 f[key] = val
-    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "oxiod9.json"
+    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "oxiod9_ecf.json"
     with pytest.raises(SystemExit) as e:
         main(["evaluate", "data=generic", f"data.root={root}", "data.split=all", f"ckpt={ckpt}",
               f"out={tmp_path / 'ev'}", "plots=false", "trajectories=false", f"hydra.run.dir={tmp_path / 'h'}"])

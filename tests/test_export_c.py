@@ -32,7 +32,7 @@ TOL = 1e-4  # rad: the C runtime (float or double build) against BackboneStreami
 NAMES = ("broad9", "broad6", "oxiod9", "euroc6", "tumvi6")
 # where each lives: the search shipped a closed loop (euroc6) and classical filters (tumvi6, oxiod9)
 # under those names; their residual models stay in checkpoints/residual/
-PATHS = {n: CKPTS / f"{n}.ckpt" if n.startswith("broad") else CKPTS / "residual" / f"{n}.ckpt" for n in NAMES}
+PATHS = {n: CKPTS / f"{n}_residual.ckpt" if n.startswith("broad") else CKPTS / "residual" / f"{n}.ckpt" for n in NAMES}
 
 
 def _axes(name):
@@ -360,7 +360,7 @@ def test_non_residual_checkpoints_are_refused(tmp_path, ckpt):
 
 def test_name_must_be_a_c_identifier(tmp_path):
     with pytest.raises(ExportError, match="identifier"):
-        export_c(CKPTS / "broad6.ckpt", tmp_path, "9-lives")
+        export_c(CKPTS / "broad6_residual.ckpt", tmp_path, "9-lives")
 
 
 # ------------------------------------------------------------------ the example
@@ -468,20 +468,20 @@ def test_export_command_writes_the_c_files_and_keeps_earlier_ones(tmp_path, caps
     from tcn_ahrs.cli import main
 
     out = tmp_path / "broad9.c"
-    main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={out}"])
+    main(["export", f"ckpt={CKPTS / 'broad9_residual.ckpt'}", "format=c", f"out={out}"])
     assert out.is_file() and (tmp_path / "broad9.h").is_file()
     assert "broad9_step" in (tmp_path / "broad9.h").read_text()
     before = out.read_text()
     out.write_text("/* mine */")
     with pytest.raises(SystemExit) as e:
-        main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={out}"])
+        main(["export", f"ckpt={CKPTS / 'broad9_residual.ckpt'}", "format=c", f"out={out}"])
     assert e.value.code == 2 and "already exist" in capsys.readouterr().err
     assert out.read_text() == "/* mine */"
-    main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={out}", "overwrite=true"])
+    main(["export", f"ckpt={CKPTS / 'broad9_residual.ckpt'}", "format=c", f"out={out}", "overwrite=true"])
     assert out.read_text() == before
     assert not list(tmp_path.glob(".*.partial"))
     with pytest.raises(SystemExit) as e:
-        main(["export", f"ckpt={CKPTS / 'broad9.ckpt'}", "format=c", f"out={tmp_path / 'model.pt'}"])
+        main(["export", f"ckpt={CKPTS / 'broad9_residual.ckpt'}", "format=c", f"out={tmp_path / 'model.pt'}"])
     assert e.value.code == 2 and "must name the C file" in capsys.readouterr().err
 
 

@@ -53,7 +53,7 @@ def imu_of(seq, axes):
 @pytest.fixture(scope="module", params=["broad9", "broad6"])
 def exported(request, tmp_path_factory):
     name = request.param
-    ckpt = CKPTS / f"{name}.ckpt"
+    ckpt = CKPTS / f"{name}_residual.ckpt"
     out = tmp_path_factory.mktemp(name)
     onnx_files = export_onnx(ckpt, out / f"{name}.onnx")
     pt2_files = export_program(ckpt, out / f"{name}.pt2")
@@ -218,11 +218,11 @@ def test_cli_format(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     script = str(ROOT / "scripts" / "export.py")
     out = tmp_path / "b6.pt2"
-    res = subprocess.run([sys.executable, script, f"ckpt={CKPTS / 'broad6.ckpt'}", f"out={out}", "format=export",
+    res = subprocess.run([sys.executable, script, f"ckpt={CKPTS / 'broad6_residual.ckpt'}", f"out={out}", "format=export",
                           "mode=streaming"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert out.exists() and "streaming:" in res.stdout and read_program_metadata(out)["mode"] == "streaming"
-    res = subprocess.run([sys.executable, script, f"ckpt={CKPTS / 'broad6.ckpt'}", f"out={out}", "format=tflite"],
+    res = subprocess.run([sys.executable, script, f"ckpt={CKPTS / 'broad6_residual.ckpt'}", f"out={out}", "format=tflite"],
                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert res.returncode != 0 and "format='tflite'" in res.stderr
 
@@ -230,14 +230,14 @@ def test_cli_format(tmp_path):
 # ------------------------------------------------------------------ a tuned classical filter
 @pytest.mark.parametrize("name", ["tumvi6", "oxiod9"])
 def test_tuned_ecf_exports_to_onnx_and_torch_export(tmp_path, name):
-    """The tuned ECF files tcn-ahrs search shipped (checkpoints/tumvi6.json, oxiod9.json) export
+    """The tuned ECF files tcn-ahrs search shipped (checkpoints/tumvi6_ecf.json, oxiod9.json) export
     as step and batch graphs in both formats (the filter's own tensor functions, its knobs and
     calibration in): equal to the estimator evaluate runs (heading from the first sample's field)
     over a simulated recording, a bad sample refused with the state unchanged."""
     from tcn_ahrs.estimators.families import load_estimator
 
     axes = 9 if name.endswith("9") else 6
-    path = CKPTS / f"{name}.json"
+    path = CKPTS / f"{name}_ecf.json"
     seq = simulate("walking", 8.0, 200.0, seed=5, axes=axes)
     imu = imu_of(seq, axes)
     est = load_estimator(path)

@@ -115,10 +115,10 @@ def test_a_frozen_magnetometer_is_flagged_and_not_trusted():
 
 
 def _broad9_knobs() -> bb.BackboneParams:
-    """The backbone parameters of checkpoints/broad9.ckpt (its networks are off: the filter is all)."""
+    """The backbone parameters of checkpoints/broad9_residual.ckpt (its networks are off: the filter is all)."""
     from tcn_ahrs.estimators.learned import LearnedEstimator
 
-    return LearnedEstimator("checkpoints/broad9.ckpt").model.backbone.params
+    return LearnedEstimator("checkpoints/broad9_residual.ckpt").model.backbone.params
 
 
 def test_a_simulated_frozen_magnetometer_is_flagged():
@@ -236,7 +236,7 @@ def test_a_learned_models_run_returns_the_health_flags():
 
     a = _clip("fast", ft._frozen("gyr"))
     seq = _seq(a, check=False)
-    out = LearnedEstimator("checkpoints/broad9.ckpt").run(seq, a["quat"][0])
+    out = LearnedEstimator("checkpoints/broad9_residual.ckpt").run(seq, a["quat"][0])
     said = health_report(seq.time, out.signals)
     assert said and said[0].startswith("gyro frozen 4.9 s from 15.1 s"), said
 

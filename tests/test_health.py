@@ -182,7 +182,7 @@ def test_the_c_runtime_flags_a_frozen_gyro(tmp_path):
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         pytest.skip("no C compiler")
-    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "broad9.ckpt"
+    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "broad9_residual.ckpt"
     paths = export_c(ckpt, tmp_path, "m")
     rt = CRuntime(compile_c(paths["c"], tmp_path / "libm.so", "double", cc), "m", 9)
     rate = 285.71
@@ -266,7 +266,7 @@ def test_the_onnx_streaming_step_reports_the_flags(tmp_path):
     pytest.importorskip("onnxruntime")
     from tcn_ahrs.export.onnx_step import OnnxStreaming, export_onnx
 
-    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "broad9.ckpt"
+    ckpt = Path(__file__).resolve().parents[1] / "checkpoints" / "broad9_residual.ckpt"
     paths = export_onnx(ckpt, tmp_path / "m.onnx", mode="streaming")
     rt = OnnxStreaming(paths["streaming"])
     assert set(rt.metadata["state"]["flags"]) >= {"gyro_frozen", "acc_frozen", "gyro_clipped", "acc_clipped", "gap"}
@@ -298,7 +298,7 @@ def test_the_fault_table_names_every_fault_and_the_checks_help():
 
 
 def test_the_learned_closed_loop_holds_through_a_frozen_gyro(monkeypatch):
-    """The shipped closed loop (checkpoints/euroc6.ckpt, its own filter, not the backbone's kernel):
+    """The shipped closed loop (checkpoints/euroc6_closed_loop.ckpt, its own filter, not the backbone's kernel):
     a gyro frozen for 5 s while walking is held, not integrated (inclination during the fault,
     three walks: 6.8° against 20.2° unchecked, VQF 40.0°; its clean error on this simulated device
     6.3°). Every runtime's check is compared in tests/test_export_closed_loop.py."""
@@ -312,7 +312,7 @@ def test_the_learned_closed_loop_holds_through_a_frozen_gyro(monkeypatch):
     gyro = seq.gyro.copy()
     gyro[k0:k1] = gyro[k0]
     f = dataclasses.replace(seq, gyro=gyro)
-    est = LearnedEstimator(Path(__file__).resolve().parents[1] / "checkpoints" / "euroc6.ckpt")
+    est = LearnedEstimator(Path(__file__).resolve().parents[1] / "checkpoints" / "euroc6_closed_loop.ckpt")
 
     def inclination_during():
         q = np.asarray(est.run(f, f.quat[0], 0).quat)

@@ -12,6 +12,8 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "tcn_ahrs"
 CONF = PACKAGE.parent / "conf"  # installed as tcn_ahrs.conf (setup.py's package_dir)
+# the folders at the top installed as packages of tcn_ahrs (setup.py's package_dir): name -> folder
+MAPPED = {"conf": CONF, "checkpoints": PACKAGE.parent / "checkpoints"}
 
 # Ground floor first. A unit is a top-level module or package of tcn_ahrs ("" = the package's
 # own __init__: ImuSequence, DataError, __version__). A module may import from its own floor and
@@ -21,8 +23,9 @@ LAYERS = [
     # caches them
     {"kernels", "numba_cache"},
     # units, frames and SO(3) on tensors; argument checks; the shipped YAML files and their typed
-    # schemas (each default once); the commands' error contract and output folders; the TUM writer
-    {"conventions", "so3", "validate", "conf", "config", "app", "tum"},
+    # schemas (each default once); the commands' error contract and output folders; the TUM writer;
+    # where the shipped models lie
+    {"conventions", "so3", "validate", "conf", "config", "app", "tum", "checkpoints"},
     # the one recording type, its validation, how an IMU agrees with its ground truth
     {"sequence", "agreement", ""},
     {"datasets"},
@@ -54,8 +57,9 @@ MAX_LINES = 450
 
 
 def _module_name(path: Path) -> str:
-    if path.parent == CONF:
-        return "tcn_ahrs.conf" + ("" if path.name == "__init__.py" else "." + path.stem)
+    for name, folder in MAPPED.items():
+        if path.parent == folder:
+            return f"tcn_ahrs.{name}" + ("" if path.name == "__init__.py" else "." + path.stem)
     parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
@@ -69,8 +73,9 @@ def _unit(module: str) -> str:
 
 def _is_module(dotted: str) -> bool:
     rel = Path(*dotted.split(".")[1:]) if "." in dotted else Path()
-    if rel.parts[:1] == ("conf",):
-        return (CONF / Path(*rel.parts[1:])).with_suffix(".py").is_file() or (CONF / Path(*rel.parts[1:]) / "__init__.py").is_file()
+    if rel.parts[:1] and rel.parts[0] in MAPPED:
+        folder, inner = MAPPED[rel.parts[0]], Path(*rel.parts[1:])
+        return (folder / inner).with_suffix(".py").is_file() or (folder / inner / "__init__.py").is_file()
     return (PACKAGE / rel).with_suffix(".py").is_file() or (PACKAGE / rel / "__init__.py").is_file()
 
 
@@ -98,7 +103,7 @@ def _imports(path: Path):
 
 
 def _sources():
-    return sorted(PACKAGE.rglob("*.py")) + sorted(CONF.glob("*.py"))
+    return sorted(PACKAGE.rglob("*.py")) + [p for folder in MAPPED.values() for p in sorted(folder.glob("*.py"))]
 
 
 def test_every_unit_has_a_floor():

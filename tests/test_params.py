@@ -12,10 +12,11 @@ from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.estimators import registry
 from tcn_ahrs.estimators.families import FAMILIES
 from tcn_ahrs.filters.ecf import ECFParams
+from tcn_ahrs.filters.eskf import ESEKFParams
 from tcn_ahrs.filters.madgwick import MadgwickParams
 from tcn_ahrs.filters.mahony import MahonyParams
 from tcn_ahrs.kernels.backbone_layout import BackboneParams
-from tcn_ahrs.kernels.params import searched
+from tcn_ahrs.kernels.params import searched, tuning_grid
 
 PLAIN = {"strapdown": "raw", "ecf": "ecf", "mahony": "mahony", "madgwick": "madgwick", "backbone": "backbone"}
 
@@ -41,7 +42,7 @@ def test_the_nine_axis_madgwick_bar_is_the_filters_default():
     assert FAMILIES["madgwick"].defaults_for(6) == {"beta": 0.033}
 
 
-@pytest.mark.parametrize("cls", [ECFParams, MahonyParams, MadgwickParams, BackboneParams])
+@pytest.mark.parametrize("cls", [ECFParams, MahonyParams, MadgwickParams, BackboneParams, ESEKFParams])
 def test_every_parameter_says_its_unit_and_meaning_and_its_range_holds_its_default(cls):
     for f in fields(cls):
         assert "unit" in f.metadata and f.metadata["meaning"], f.name
@@ -50,6 +51,33 @@ def test_every_parameter_says_its_unit_and_meaning_and_its_range_holds_its_defau
         defaults = [MadgwickParams.default_beta(6), MadgwickParams.default_beta(9)] if default is None else [default]
         for d in defaults:
             assert (d in rng) if isinstance(rng, list) else (rng[0] <= d <= rng[1]), (name, d, rng)
+
+
+@pytest.mark.parametrize("name, cls", [("ecf", ECFParams), ("mahony", MahonyParams), ("madgwick", MadgwickParams),
+                                       ("eskf", ESEKFParams), ("robust_eskf", ESEKFParams), ("backbone", BackboneParams)])
+def test_the_registrys_tuning_grid_and_defaults_are_the_parameters_own(name, cls):
+    """The registry's estimators tune over their parameter dataclass's ``grid`` points and start
+    from its defaults (the backbone estimator's six direct knobs were a second copy of VQF's)."""
+    est = registry.build(name, 9)
+    assert type(est).default_grid == tuning_grid(cls) and tuple(type(est).tunable) == tuple(tuning_grid(cls))
+    assert tuning_grid(cls), f"{cls.__name__}: nothing to tune"
+    defaults = cls()
+    for k, v in est.params().items():
+        if hasattr(defaults, k):
+            assert v == getattr(defaults, k), (name, k)
+
+
+def test_the_c_runtime_of_a_tuned_ecf_writes_every_ecf_parameter():
+    """The ECF's C template names each ECFParams field (@K_NORM@, ...): a field added to the
+    dataclass without a place in C fails here, and its value is the file's knob."""
+    from tcn_ahrs.export.c.classical import generate_classical_c
+    from tcn_ahrs.export.c.templates import template
+
+    text = template("ecf.c.in")
+    assert all(f"@{f.name.upper()}@" in text for f in fields(ECFParams))
+    knobs = {f.name: 0.5 + i / 8 for i, f in enumerate(fields(ECFParams))}   # each a distinct value
+    c = generate_classical_c({"family": "ecf", "axes": 9, "knobs": knobs}, "m")["c"]
+    assert all(repr(v) in c for v in knobs.values())
 
 
 def test_commands_keep_third_party_logs_quiet_unless_verbose(tmp_path):
@@ -61,7 +89,7 @@ def test_commands_keep_third_party_logs_quiet_unless_verbose(tmp_path):
 
     def run(env_extra):
         env = {**os.environ, **env_extra}
-        p = subprocess.run([sys.executable, "-m", "tcn_ahrs", "export", "ckpt=checkpoints/broad6.ckpt", "format=onnx",
+        p = subprocess.run([sys.executable, "-m", "tcn_ahrs", "export", "ckpt=checkpoints/broad6_residual.ckpt", "format=onnx",
                             "mode=streaming", f"out={tmp_path / ('v' if env_extra else 'q')}.onnx"],
                            capture_output=True, text=True, env=env, timeout=600)
         assert p.returncode == 0, p.stderr

@@ -363,8 +363,8 @@ def test_a_learned_checkpoint_with_its_networks_off_is_called_the_backbone(tmp_p
     from pathlib import Path
 
     repo = Path(__file__).resolve().parents[1]
-    assert networks_off(repo / "checkpoints" / "broad9.ckpt")  # trust_weight 0, gyro_clip 0
-    ck = load_checkpoint(repo / "checkpoints" / "broad9.ckpt")
+    assert networks_off(repo / "checkpoints" / "broad9_residual.ckpt")  # trust_weight 0, gyro_clip 0
+    ck = load_checkpoint(repo / "checkpoints" / "broad9_residual.ckpt")
     ck["tcn_ahrs"]["model"]["residual"]["trust_weight"] = 0.5
     torch.save(ck, tmp_path / "on.ckpt")
     assert not networks_off(tmp_path / "on.ckpt") and not networks_off(None)

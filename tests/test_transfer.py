@@ -55,6 +55,6 @@ def test_the_matrix_names_each_shipped_models_family(tmp_path):
     save_estimator(tmp_path / "mine6.json", "ecf", 6, {"k_norm": 0.1, "a_min": 1.0}, None, {"dataset": "simulated"})
     assert shipped_meta(str(tmp_path / "mine6.json")) == {"axes": 6, "data": "simulated", "family": "ecf (tuned)"}
     # a residual whose knobs switch both networks off is called the classical filter it runs as
-    assert shipped_meta(str(root / "broad9.ckpt"))["family"] == "backbone, tuned knobs (networks off)"
-    assert shipped_meta(str(root / "general9.ckpt"))["family"] == "learned residual"
+    assert shipped_meta(str(root / "broad9_residual.ckpt"))["family"] == "backbone, tuned knobs (networks off)"
+    assert shipped_meta(str(root / "general9_residual.ckpt"))["family"] == "learned residual"
     assert set(shipped_paths(tmp_path)) == {"mine6"}

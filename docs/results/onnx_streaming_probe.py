@@ -19,7 +19,7 @@ from tcn_ahrs.checkpoint import model_from_checkpoint
 from tcn_ahrs.export import ClosedLoopStreaming
 from tcn_ahrs.bench.common import synthetic_imu
 
-m = model_from_checkpoint("checkpoints/broad9.ckpt").eval()
+m = model_from_checkpoint("checkpoints/broad9_residual.ckpt").eval()
 ts = ClosedLoopStreaming(m, {"rate_hz": 285.7})
 K = ts.kernel_size
 

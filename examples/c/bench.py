@@ -38,7 +38,7 @@ def best(f, reps=3):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--ckpts", nargs="*", default=["broad9", "oxiod9", "general9", "euroc6_small"])
+    ap.add_argument("--ckpts", nargs="*", default=["broad9_residual", "residual/oxiod9", "general9_residual", "euroc6_residual_small"])
     ap.add_argument("--cflags", default="")
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--broad", nargs="*", default=["05_undisturbed_slow_rotation_with_breaks_B",

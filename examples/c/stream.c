@@ -3,7 +3,7 @@
  * "w,x,y,z,omega_x,omega_y,omega_z" (refused samples: "refused,<code>") and, on stderr, the
  * median per-sample step time.
  *
- *   tcn-ahrs export ckpt=checkpoints/broad9.ckpt format=c out=broad9.c
+ *   tcn-ahrs export ckpt=checkpoints/broad9_residual.ckpt format=c out=broad9.c
  *   cc -std=c99 -O2 -Wall -Wextra -DMODEL=broad9 -DMODEL_HEADER='"broad9.h"' stream.c broad9.c -o stream -lm
  *   ./stream imu.csv 0.005 [q0w q0x q0y q0z] > quat.csv
  *

@@ -5,7 +5,7 @@
 
 Sections (each one table, with ratios against the thing it should be compared with):
 
-* ``train``     — the shipped recipe's training step (``model: closed``, experiment=broad9_cl:
+* ``train``     — the shipped recipe's training step (``model: closed``, experiment=broad9_closed_loop:
   32 streams x 1000-sample chunks after the networks' context, the closed loop as tensor ops,
   attitude loss, backward, AdamW) in IMU samples/s, with the wall time of one epoch and of the
   12-epoch schedule on the BROAD training split (exact window count from ``load_split`` when the

@@ -98,22 +98,22 @@ def _declared(inject, **attrs):
 
 # case -> (clip, injector, ckpt, extra overrides, window metric: (what, seconds after the fault ends, length))
 CASES: Dict[str, tuple] = {
-    "clean (fast rotation)": ("fast", None, "broad9", [], ("inclination", 5.0, 1.0)),
-    "clean (slow rotation)": ("slow", None, "broad9", [], ("inclination", 5.0, 1.0)),
-    "magnetometer x and y swapped": ("slow", _mag_swap, "broad9", [], None),
-    "hard iron +150 / −80 / +60 µT": ("slow", _hard_iron, "broad9", [], None),
-    "magnetometer frozen 5 s": ("fast", _frozen("mag"), "broad9", [], ("heading", 4.0, 4.0)),
-    "accelerometer saturating at ±2 g (fast translation)": ("translation", _saturate, "broad9", [], None),
-    "clean (fast translation)": ("translation", None, "broad9", [], None),
-    "accelerometer frozen 5 s": ("slow", _frozen("acc"), "broad9", [], ("inclination", 5.0, 1.0)),
-    "accelerometer frozen 5 s in fast motion": ("fast", _frozen("acc"), "broad9", [], ("inclination", 5.0, 1.0)),
-    "all-zero magnetometer, 6-axis model": ("slow", _zero_mag, "broad6", ["data.axes=6"], None),
-    "a 0.5 s recording": ("slow", _short, "broad9", [], None),
-    "ground truth 30 ms late": ("fast", _lag(0.03), "broad9", [], None),
+    "clean (fast rotation)": ("fast", None, "broad9_residual", [], ("inclination", 5.0, 1.0)),
+    "clean (slow rotation)": ("slow", None, "broad9_residual", [], ("inclination", 5.0, 1.0)),
+    "magnetometer x and y swapped": ("slow", _mag_swap, "broad9_residual", [], None),
+    "hard iron +150 / −80 / +60 µT": ("slow", _hard_iron, "broad9_residual", [], None),
+    "magnetometer frozen 5 s": ("fast", _frozen("mag"), "broad9_residual", [], ("heading", 4.0, 4.0)),
+    "accelerometer saturating at ±2 g (fast translation)": ("translation", _saturate, "broad9_residual", [], None),
+    "clean (fast translation)": ("translation", None, "broad9_residual", [], None),
+    "accelerometer frozen 5 s": ("slow", _frozen("acc"), "broad9_residual", [], ("inclination", 5.0, 1.0)),
+    "accelerometer frozen 5 s in fast motion": ("fast", _frozen("acc"), "broad9_residual", [], ("inclination", 5.0, 1.0)),
+    "all-zero magnetometer, 6-axis model": ("slow", _zero_mag, "broad6_residual", ["data.axes=6"], None),
+    "a 0.5 s recording": ("slow", _short, "broad9_residual", [], None),
+    "ground truth 30 ms late": ("fast", _lag(0.03), "broad9_residual", [], None),
     "ground truth 30 ms late, gt_time_offset: 0.03 declared": ("fast", _declared(_lag(0.03), gt_time_offset=0.03),
-                                                                 "broad9", [], None),
-    "all-zero magnetometer, 9-axis model": ("slow", _zero_mag, "broad9", [], None),
-    "gyro frozen 5 s (fast motion)": ("fast", _frozen("gyr"), "broad9", [], ("heading", 4.0, 4.0)),
+                                                                 "broad9_residual", [], None),
+    "all-zero magnetometer, 9-axis model": ("slow", _zero_mag, "broad9_residual", [], None),
+    "gyro frozen 5 s (fast motion)": ("fast", _frozen("gyr"), "broad9_residual", [], ("heading", 4.0, 4.0)),
 }
 
 
@@ -213,7 +213,7 @@ def markdown(result: dict) -> str:
     """The fault table of docs/troubleshooting.md: per case the shipped model before (the commit the
     issue was read at) and now, and VQF now (VQF's code did not change), from ``fault_trial.json``."""
     before = {r["case"]: r for r in (result.get("before") or {}).get("cases", [])}
-    lines = ["| fault (BROAD clip, `tcn-ahrs evaluate ckpt=broad9`) | before | now | VQF |", "|---|---|---|---|"]
+    lines = ["| fault (BROAD clip, `tcn-ahrs evaluate ckpt=broad9_residual`) | before | now | VQF |", "|---|---|---|---|"]
     for row in result["cases"]:
         # VQF on the faulty clip (its code is the same before and now; refused now, it ran before)
         ran = row if row.get("aae") else before.get(row["case"]) or {}

@@ -2,7 +2,7 @@
 each run through the backbone with its health checks (``now``), the same backbone with them off
 (``before``: frozen_time, the clip floors and gap_factor 0), VQF and the default learned model.
 
-``python scripts/benchmark.py faults [faults.seeds=[0,1,2]] [faults.ckpt=checkpoints/general9.ckpt]``
+``python scripts/benchmark.py faults [faults.seeds=[0,1,2]] [faults.ckpt=checkpoints/general9_residual.ckpt]``
 writes ``faults.json`` / ``faults.md`` (out=DIR, default runs/benchmark/faults). Per case: which
 flag the filter raised and on what share of the faulty samples, and the total attitude error
 (degrees, no alignment: the filters start from the ground truth) during the fault and 10-20 s
@@ -81,7 +81,7 @@ def _errors(seq, quat, window, end) -> Dict[str, float]:
             "heading_after": float(heading[after].mean()) if after.start < len(seq) else nan}
 
 
-def fault_table(seeds=(0, 1, 2), ckpt: Optional[str] = "checkpoints/general9.ckpt") -> Dict[str, Any]:
+def fault_table(seeds=(0, 1, 2), ckpt: Optional[str] = "checkpoints/general9_residual.ckpt") -> Dict[str, Any]:
     from ..datasets.simulate import simulate
     from ..estimators.registry import build
     from ..filters import backbone as bb

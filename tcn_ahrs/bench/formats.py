@@ -2,7 +2,7 @@
 and one thread: OnnxStreaming (one onnxruntime session run per sample), ExportedStreaming (the
 torch.export program, eager), the TorchScript ResidualStreaming and BackboneStreaming (numba).
 
-    python -m tcn_ahrs.bench.formats [--ckpt checkpoints/broad9.ckpt] [--steps 3000] [--slow-steps 300]
+    python -m tcn_ahrs.bench.formats [--ckpt checkpoints/broad9_residual.ckpt] [--steps 3000] [--slow-steps 300]
 
 ExportedStreaming runs ~2300 tensor ops eagerly per sample (tens of ms): it is timed on
 ``--slow-steps`` samples. Exports go to a temporary folder. Prints one row per runtime (median and
@@ -35,7 +35,7 @@ def _time(step: Callable[[int], np.ndarray], n: int, warm: int = 50):
     return ts, np.array(qs)
 
 
-def step_formats(ckpt: str = "checkpoints/broad9.ckpt", steps: int = 3000, slow_steps: int = 300,
+def step_formats(ckpt: str = "checkpoints/broad9_residual.ckpt", steps: int = 3000, slow_steps: int = 300,
                  seed: int = 0) -> List[Dict]:
     """The rows (see the module docstring)."""
     import logging
@@ -89,7 +89,7 @@ def step_formats(ckpt: str = "checkpoints/broad9.ckpt", steps: int = 3000, slow_
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--ckpt", default="checkpoints/broad9.ckpt")
+    ap.add_argument("--ckpt", default="checkpoints/broad9_residual.ckpt")
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--slow-steps", type=int, default=300)
     a = ap.parse_args(argv)

@@ -71,7 +71,7 @@ class TransferSection:
 class LodoSection:
     """benchmark ``lodo:`` (tcn_ahrs.experiments.lodo, leave one dataset out)."""
     datasets: Optional[List[str]] = None
-    experiment: str = "general6_res"
+    experiment: str = "general6_residual"
     overrides: List[str] = field(default_factory=list)
     runs: str = "runs/lodo"
     train: bool = True
@@ -98,7 +98,7 @@ class FinetuneSection:
 class FaultsSection:
     """benchmark ``faults:`` (tcn_ahrs.bench.faults)."""
     seeds: List[int] = field(default_factory=lambda: [0, 1, 2])  # one simulated walk per seed
-    ckpt: Optional[str] = "checkpoints/general9.ckpt"             # the learned column (null: none)
+    ckpt: Optional[str] = "checkpoints/general9_residual.ckpt"             # the learned column (null: none)
 
 
 @dataclass

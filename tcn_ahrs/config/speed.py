@@ -7,7 +7,7 @@ from typing import Any, Dict, List, Optional
 
 @dataclass
 class SpeedTrain:
-    """closed: the shipped recipe's step (experiment=broad9_cl: 32 streams x 1000-sample chunks,
+    """closed: the shipped recipe's step (experiment=broad9_closed_loop: 32 streams x 1000-sample chunks,
     truncated backpropagation through the closed loop, 12 epochs); paper: the open-loop model on
     16 x 3000 windows, 1800 epochs (model=paper)."""
     model: str = "closed"
@@ -78,7 +78,7 @@ class SpeedFilters:
 class SpeedDeploy:
     """Every runtime of a shipped residual checkpoint side by side (C, ONNX, torch.export,
     TorchScript, numba) beside VQF's C++ and RIANN; the footprint of every shipped checkpoint."""
-    ckpt: str = "checkpoints/broad9.ckpt"
+    ckpt: str = "checkpoints/broad9_residual.ckpt"
     rate: float = 285.71          # Hz of the simulated samples (BROAD's rate: the checkpoint's own)
     samples: int = 3000           # timed steps (single calls) per runtime; loops run the whole recording
     warmup: int = 200
@@ -92,8 +92,8 @@ class SpeedDeploy:
     # axes: networks on (residual/oxiod9: ckpt's broad9 runs as the backbone alone, its networks off) and small
     # and the tuned ECF files tcn-ahrs search shipped (C, ONNX and torch.export too)
     c_models: List[str] = field(default_factory=lambda: ["checkpoints/residual/oxiod9.ckpt",
-                                                         "checkpoints/euroc6_small.ckpt", "checkpoints/oxiod9.json",
-                                                         "checkpoints/tumvi6.json"])
+                                                         "checkpoints/euroc6_residual_small.ckpt", "checkpoints/oxiod9_ecf.json",
+                                                         "checkpoints/tumvi6_ecf.json"])
 
 
 @dataclass
@@ -116,5 +116,5 @@ SPEED_QUICK: Dict[str, Any] = {
     "streaming": {"axes": [9], "samples": 100, "warmup": 10, "chunk": 10},
     "filters": {"samples": 200, "batches": [1, 4]},
     "deploy": {"samples": 50, "warmup": 5, "slow_steps": 5, "onnx": False, "export": False, "aoti": False,
-               "footprint_glob": "checkpoints/broad9.ckpt"},
+               "footprint_glob": "checkpoints/broad9_residual.ckpt"},
 }

@@ -15,8 +15,11 @@ import numpy as np
 import torch
 
 from ..filters import backbone as bb
+from ..kernels.params import tuning_grid
 from .classical import ClassicalEstimator
 from .registry import register
+
+_VQF = bb.BackboneParams()   # VQF's defaults
 
 
 @register("backbone", "classical")
@@ -29,18 +32,18 @@ class Backbone(ClassicalEstimator):
     ``mag_disturbed``, ``gyro_frozen``, ``acc_frozen``, ``gyro_clipped``, ``acc_clipped``, ``gap`` (N,)
     (sensor health, no ground truth)."""
 
-    tau_acc: float = 3.0  # s
-    tau_mag: float = 9.0  # s
-    motion_bias: float = 1.0  # 1: bias estimation in motion, 0: off
-    rest_bias: float = 1.0  # 1: rest detection and bias estimation at rest, 0: off
-    bias_clip: float = 2.0  # deg/s, bound of the bias estimate
-    mag_rejection: float = 1.0  # 1: magnetic disturbance rejection, 0: off
+    # the knobs an estimator sets directly (meaning, unit, default: BackboneParams's fields)
+    tau_acc: float = _VQF.tau_acc
+    tau_mag: float = _VQF.tau_mag
+    motion_bias: float = _VQF.motion_bias
+    rest_bias: float = _VQF.rest_bias
+    bias_clip: float = _VQF.bias_clip
+    mag_rejection: float = _VQF.mag_rejection
     extra: object = None  # dict of further BackboneParams fields
 
     method: ClassVar[str] = "backbone"
-    tunable: ClassVar[Sequence[str]] = ("tau_acc", "tau_mag", "motion_bias", "bias_clip")
-    default_grid: ClassVar[Dict[str, list]] = {"tau_acc": [1.0, 3.0, 10.0], "tau_mag": [3.0, 9.0, 20.0],
-                                               "motion_bias": [1.0, 0.0], "bias_clip": [2.0, 8.0]}
+    default_grid: ClassVar[Dict[str, list]] = tuning_grid(bb.BackboneParams)
+    tunable: ClassVar[Sequence[str]] = tuple(default_grid)
 
     def _filter(self, gyro, accel, dt, q0, mag, p):
         r = gyro.shape[0]

@@ -48,6 +48,7 @@ from ..filters.ecf import ECFParams
 from ..filters.eskf import ESEKFParams, RobustESEKFParams
 from ..filters.madgwick import MadgwickParams
 from ..filters.mahony import MahonyParams
+from ..kernels.params import tuning_grid
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
 from .registry import register
@@ -221,9 +222,8 @@ class ClosedLoopECF(ECFParams, ClassicalEstimator):
     local field). Signals: ``acc_used``, ``mag_used`` (Eq. 7 decisions), ``gain`` (Eq. 8)."""
 
     method: ClassVar[str] = "ecf"
-    tunable: ClassVar[Sequence[str]] = ("k_norm", "a_min")
-    default_grid: ClassVar[Dict[str, list]] = {"k_norm": [0.05, 0.1, 0.2, 0.5, 1.0, 2.0],
-                                               "a_min": [0.3, 1.0, 3.0]}
+    default_grid: ClassVar[Dict[str, list]] = tuning_grid(ECFParams)
+    tunable: ClassVar[Sequence[str]] = tuple(default_grid)
 
     def _filter(self, gyro, accel, dt, q0, mag, p):
         return ecf(gyro, accel, dt, q0, mag=mag, **p)
@@ -237,8 +237,8 @@ class Mahony(MahonyParams, ClassicalEstimator):
     Tuned: ``k_p``, ``k_i``. Signals: ``gyro_bias`` (N, 3) rad/s."""
 
     method: ClassVar[str] = "mahony"
-    tunable: ClassVar[Sequence[str]] = ("k_p", "k_i")
-    default_grid: ClassVar[Dict[str, list]] = {"k_p": [0.1, 0.3, 1.0, 3.0], "k_i": [0.0, 0.01, 0.1, 0.3]}
+    default_grid: ClassVar[Dict[str, list]] = tuning_grid(MahonyParams)
+    tunable: ClassVar[Sequence[str]] = tuple(default_grid)
 
     def _filter(self, gyro, accel, dt, q0, mag, p):
         return mahony(gyro, accel, dt, q0, mag=mag, k_p=p["k_p"], k_i=p["k_i"], compat=bool(p["compat"]))
@@ -252,8 +252,8 @@ class Madgwick(MadgwickParams, ClassicalEstimator):
     default (0.033 6-axis, 0.041 9-axis). Tuned: ``beta``."""
 
     method: ClassVar[str] = "madgwick"
-    tunable: ClassVar[Sequence[str]] = ("beta",)
-    default_grid: ClassVar[Dict[str, list]] = {"beta": [0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2]}
+    default_grid: ClassVar[Dict[str, list]] = tuning_grid(MadgwickParams)
+    tunable: ClassVar[Sequence[str]] = tuple(default_grid)
 
     def _filter(self, gyro, accel, dt, q0, mag, p):
         return madgwick(gyro, accel, dt, q0, mag=mag, beta=p["beta"])
@@ -267,9 +267,8 @@ class ESEKF(ESEKFParams, ClassicalEstimator):
     datasheet / Allan variance). Signals: ``gyro_bias`` (N, 3) rad/s, ``att_std`` (N, 3) rad."""
 
     method: ClassVar[str] = "eskf"
-    tunable: ClassVar[Sequence[str]] = ("accel_noise", "mag_noise")
-    default_grid: ClassVar[Dict[str, list]] = {"accel_noise": [0.01, 0.03, 0.1, 0.3],
-                                               "mag_noise": [0.01, 0.03, 0.1, 0.3]}
+    default_grid: ClassVar[Dict[str, list]] = tuning_grid(ESEKFParams)
+    tunable: ClassVar[Sequence[str]] = tuple(default_grid)
 
     def _filter(self, gyro, accel, dt, q0, mag, p):
         return eskf(gyro, accel, dt, q0, mag=mag, robust=False, **p)

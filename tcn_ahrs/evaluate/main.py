@@ -55,7 +55,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
     if default_estimator:
         print("note: no ckpt given: the backbone with VQF's defaults on device-checked recordings (the default: "
               "no general model is yet never worse than VQF on datasets it never saw); the learned models for "
-              "any IMU are ckpt=general9 / ckpt=general6, your device's own: tcn-ahrs search")
+              "any IMU are ckpt=general9_residual / ckpt=general6_residual, your device's own: tcn-ahrs search")
         name = str(cfg.get("name")) if cfg.get("name") not in (None, _D.name) else DEFAULT_NAME
         return _run(cfg, default(axes, name), *_recordings(cfg, True), axes, out)
     if is_estimator_file(cfg.ckpt):  # a classical family chosen by tcn-ahrs search
@@ -80,8 +80,8 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
 
 
 DEFAULT_NAME = "Backbone (default)"
-GENERAL_MODELS = ("general6", "general9")
-"""Shipped learned models for any IMU, run by name (``ckpt=general9``): named options, not the
+GENERAL_MODELS = ("general6_residual", "general9_residual")
+"""Shipped learned models for any IMU, run by name (``ckpt=general9_residual``): named options, not the
 default, while they are worse than VQF on datasets they never saw (docs/results.md, leave one
 dataset out)."""
 
@@ -98,16 +98,28 @@ def default(axes: int, name: str = DEFAULT_NAME):
 
 
 def shipped(ckpt: str) -> str:
-    """``ckpt`` as given, or a shipped file named without folder and suffix (``general9``,
-    ``euroc6``, ``tumvi6``): ``checkpoints/<name>.ckpt`` or ``.json`` of the checkout."""
-    if Path(ckpt).exists() or "/" in ckpt or Path(ckpt).suffix:
+    """``ckpt`` as given, or a shipped model named without folder and suffix (``general9_residual``,
+    ``euroc6_closed_loop``, ``tumvi6_ecf``): ``<name>.ckpt`` or ``.json`` of the installed package
+    (:data:`tcn_ahrs.checkpoints.SHIPPED_DIR`, the checkout's ``checkpoints/``). An old name
+    (``general9``, ``checkpoints/broad9.ckpt``: :data:`tcn_ahrs.config.renamed.CHECKPOINTS`) runs the
+    renamed file and says so."""
+    from ..checkpoints import SHIPPED_DIR
+    from ..config.renamed import CHECKPOINTS
+
+    path = Path(ckpt)
+    if path.exists():
         return ckpt
-    folder = Path(__file__).resolve().parents[2] / "checkpoints"
+    if path.stem in CHECKPOINTS and ("/" not in ckpt or path.parent.name == "checkpoints"):
+        new = CHECKPOINTS[path.stem]
+        print(f"note: ckpt={ckpt} is now ckpt={new} (README, \"Renamed\")")
+        ckpt, path = new, Path(new)
+    if "/" in ckpt or path.suffix:
+        return ckpt
     for suffix in (".ckpt", ".json"):
-        if (folder / f"{ckpt}{suffix}").is_file():
-            print(f"note: ckpt={ckpt}: the shipped {folder / (ckpt + suffix)}")
-            return str(folder / f"{ckpt}{suffix}")
-    names = sorted(p.stem for p in folder.glob("*.ckpt")) + sorted(p.stem for p in folder.glob("*.json"))
+        if (SHIPPED_DIR / f"{ckpt}{suffix}").is_file():
+            print(f"note: ckpt={ckpt}: the shipped {SHIPPED_DIR / (ckpt + suffix)}")
+            return str(SHIPPED_DIR / f"{ckpt}{suffix}")
+    names = sorted(p.stem for p in SHIPPED_DIR.glob("*.ckpt")) + sorted(p.stem for p in SHIPPED_DIR.glob("*.json"))
     raise FileNotFoundError(f"evaluate: ckpt={ckpt}: no such file, nor a shipped model of that name "
                             f"(shipped: {', '.join(names) or 'none in this install'})")
 

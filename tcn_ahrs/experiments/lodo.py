@@ -1,5 +1,5 @@
 """Leave one dataset out (``python scripts/benchmark.py lodo``): for each dataset, a general model
-trained on the others (``experiment=general6_res data.leave_out=<dataset>``) scored on every
+trained on the others (``experiment=general6_residual data.leave_out=<dataset>``) scored on every
 recording of the left-out dataset, beside that dataset's own model, the backbone, every classical
 filter, VQF and RIANN on the same recordings.
 
@@ -91,12 +91,12 @@ def reselect(dataset: str, run_dir: Path, experiment: str, overrides: Sequence[s
                                  grid, str(cfg.train.get("knob_rule") or "both"))
 
 
-def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "general6_res",
+def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "general6_residual",
          overrides: Sequence[str] = (), baselines: Sequence[str] = BASELINES, train: bool = True,
          nested: Path = Path("runs/nested"), out: Optional[Path] = None, reselect_knobs: bool = False,
          device_check: bool = True) -> Dict[str, Any]:
     """The table over ``data_cfgs`` {dataset: its data config}, at the experiment's axes
-    (general6_res: 6, general9_res: 9, datasets without a magnetometer skipped). ``device_check``:
+    (general6_residual: 6, general9_residual: 9, datasets without a magnetometer skipped). ``device_check``:
     every method runs on the recordings with their gyro bias at rest subtracted, as ``tcn-ahrs
     evaluate`` does for the general models (:mod:`tcn_ahrs.device_check`, no ground truth)."""
     from ..datasets import load_split
@@ -203,7 +203,7 @@ def lodo_main(cfg) -> Dict[str, Any]:
     """``scripts/benchmark.py lodo``: the ``lodo`` section of ``conf/benchmark.yaml``."""
     t, data_cfgs = section_and_datasets(cfg, "lodo")
     out = Path(cfg.get("out") or "runs/benchmark/lodo")
-    res = lodo(data_cfgs, Path(t.get("runs") or "runs/lodo"), str(t.get("experiment") or "general6_res"),
+    res = lodo(data_cfgs, Path(t.get("runs") or "runs/lodo"), str(t.get("experiment") or "general6_residual"),
                list(t.get("overrides") or []), list(t.get("baselines") or BASELINES), bool(t.get("train", True)),
                Path(t.get("nested") or "runs/nested"), out, bool(t.get("reselect", False)), bool(t["device_check"]))
     print(markdown(res))

@@ -33,15 +33,21 @@ import torch
 from torch import Tensor, nn
 
 from ..kernels import backbone as K
+from ..kernels import backbone_gains
 from ..kernels.backbone_layout import BackboneParams
+from ..kernels.ops import load_kernel
 from .classical_step import hamilton, quat_product, rotation_matrix, rotation_rows
 from .graph_state import HEALTH_INDEX, MAG_SCALARS, Writes, filter_index, plan_buffers
 
 F64 = torch.float64
-N_COEFF_GRAPH = 22   # BackboneGraph.coefficients: dt, 3 x 5 low-pass rows, 2 gains, 4 bias-filter terms
-
-# the low-pass coefficient rows (b0, b1, b2, a1, a2) this graph computes from dt, by filter kind
+# the low-pass coefficient rows (b0, b1, b2, -a1, -a2) this graph computes from dt, by filter kind
 _ACC, _REST, _MAG = 0, 1, 2
+N_LOWPASS, N_GAINS, N_BIAS_NOISE = 3, 2, 4   # those rows; k_mag and k_mag_ref; V, W_motion, W_vertical, W_rest
+# BackboneGraph.coefficients: [dt, the low-pass rows, the gains, the bias filter's noise]
+_ROWS = slice(1, 1 + 5 * N_LOWPASS)
+_GAINS = slice(_ROWS.stop, _ROWS.stop + N_GAINS)
+_NOISE = slice(_GAINS.stop, _GAINS.stop + N_BIAS_NOISE)
+N_COEFF_GRAPH = _NOISE.stop
 
 
 class BackboneGraph(nn.Module):
@@ -60,6 +66,11 @@ class BackboneGraph(nn.Module):
         super().__init__()
         p = [float(v) for v in params]
         self.p, self.use_mag, self.T = p, bool(use_mag), ops
+        # the coefficients' and gains' formulas: the kernel's own (kernels/backbone_gains.py), read
+        # with this graph's ops table on (K,) tensors
+        self.G = load_kernel(backbone_gains, ops)
+        self.noise = (p[K.P_SIGMA_INIT], p[K.P_FORGET], p[K.P_SIGMA_MOTION], p[K.P_VERT_FORGET], p[K.P_SIGMA_REST])
+        self.p0 = float(backbone_gains.bias_noise(*self.noise, 1.0)[0])   # P0: the same at every step
         self.rest_bias = p[K.P_REST_BIAS] > 0.5
         self.mag_rej = p[K.P_MAG_REJ] > 0.5
         self.motion = p[K.P_MOTION_BIAS] > 0.5
@@ -71,10 +82,8 @@ class BackboneGraph(nn.Module):
         self.register_buffer("matrix", rotation_rows((0, 1, 2)))
         taus = [p[K.P_TAU_ACC], p[K.P_REST_TAU], max(p[K.P_MAG_CUR_TAU], 1e-9)]
         self.register_buffer("taus", torch.tensor(taus, dtype=F64))
-        self.register_buffer("fc_pi", torch.tensor([math.pi * math.sqrt(2.0) / (2.0 * math.pi * t) for t in taus],
-                                                   dtype=F64))
         self.register_buffer("thru_row", torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0], dtype=F64))
-        self.register_buffer("exp_rates", torch.tensor([-1.0 / p[K.P_TAU_MAG], -1.0 / p[K.P_MAG_REF_TAU]], dtype=F64))
+        self.register_buffer("gain_taus", torch.tensor([p[K.P_TAU_MAG], p[K.P_MAG_REF_TAU]], dtype=F64))
         floors = [p[K.P_GCLIP_FLOOR], p[K.P_ACLIP_FLOOR]]
         # a floor <= 0 switches the clip check off: no reading reaches +inf
         self.register_buffer("clip_floor", torch.tensor([[f if f > 0.0 else math.inf] for f in floors], dtype=F64))
@@ -173,19 +182,12 @@ class BackboneGraph(nn.Module):
         """(N_COEFF_GRAPH,) at step dt, the kernel's ``coefficients`` (VQF's filterCoeffs and
         gains): [dt, the low-pass rows (3, 5) of the acc / rest / mag filters as b0, b1, b2, -a1,
         -a2, k_mag, k_mag_ref, the bias filter's V, W_motion, W_vertical, W_rest]."""
-        p, T = self.p, self.T
-        cc = T.tan(self.fc_pi * dt)
-        d = cc * cc + math.sqrt(2.0) * cc + 1.0
-        b0 = cc * cc / d
-        a1, a2 = 2.0 * (cc * cc - 1.0) / d, (1.0 - math.sqrt(2.0) * cc + cc * cc) / d
+        b0, a1, a2 = self.G.butter_terms(self.taus, dt)
         rows = torch.stack([b0, 2.0 * b0, b0, -a1, -a2], 1)
-        rows = torch.where((self.taus < dt / 2.0)[:, None], self.thru_row, rows)
-        gains = 1.0 - torch.exp(self.exp_rates * dt)
-        v = (0.1 * 100.0) ** 2 * dt / p[K.P_FORGET]
-        pm, pr = (p[K.P_SIGMA_MOTION] * 100.0) ** 2, (p[K.P_SIGMA_REST] * 100.0) ** 2
-        wm = pm * pm / v + pm
-        bias_c = torch.stack([v, wm, wm / max(p[K.P_VERT_FORGET], 1e-10), pr * pr / v + pr])
-        return torch.cat([dt.reshape(1), rows.reshape(15), gains, bias_c])
+        rows = torch.where((self.taus < dt / 2.0)[:, None], self.thru_row, rows)   # the kernel's passthrough
+        gains = self.G.first_order_gain(self.gain_taus, dt)
+        bias_c = torch.stack(self.G.bias_noise(*self.noise, dt)[1:])
+        return torch.cat([dt.reshape(1), rows.reshape(5 * N_LOWPASS), gains, bias_c])
 
     def lowpass(self, call: str, s: Tensor, x: Tensor, rows: Tensor, dt: Tensor, hold_gap: Tensor,
                 writes: "Writes") -> Tensor:
@@ -237,7 +239,7 @@ class BackboneGraph(nn.Module):
         """``coeff``: :meth:`coefficients` of this dt when the caller keeps them (computed here otherwise)."""
         p = self.p
         coeff = self.coefficients(dt) if coeff is None else coeff
-        rows, gains, bias_c = coeff[1:16].reshape(3, 5), coeff[16:18], coeff[18:22]
+        rows, gains, bias_c = coeff[_ROWS].reshape(N_LOWPASS, 5), coeff[_GAINS], coeff[_NOISE]
         w = Writes()
         sc = s[self.scalars]
         ts_typ, was_frozen, wait0, kminit, rest, rest_t = sc.unbind(0)
@@ -366,7 +368,7 @@ class BackboneGraph(nn.Module):
         W = torch.where(at_rest, bias_c[self.w_rest], bias_c[self.w_motion])
         # P <- P + V on the diagonal below P0 (also without a measurement: the bias may drift)
         P = s[K.S_P:K.S_P + 9]
-        P = torch.where(self.diag9 & (P < (p[K.P_SIGMA_INIT] * 100.0) ** 2), P + bias_c[0], P).reshape(3, 3)
+        P = torch.where(self.diag9 & (P < self.p0), P + bias_c[0], P).reshape(3, 3)
         cl = p[K.P_CLIP] * K.DEG
         e = torch.clamp(e, -cl, cl)
         A = P @ H.T
@@ -412,25 +414,11 @@ class BackboneGraph(nn.Module):
             und_t = torch.where(accept, p[K.P_MAG_MIN_UND_T], und_t)
             # rejection: no heading correction while disturbed, for at most mag_max_rejection_time,
             # then a reduced gain; the allowance recovers at mag_rejection_factor × real time
-            disturbed = dist > 0.5
-            rej_t = ms[7]
-            within = rej_t <= p[K.P_MAG_MAX_REJ_T]
-            k = torch.where(disturbed, torch.where(within, 0.0, k / p[K.P_MAG_REJ_FACTOR]), k)
-            rej_t = torch.where(disturbed, torch.where(within, rej_t + dt, rej_t),
-                                torch.clamp(rej_t - p[K.P_MAG_REJ_FACTOR] * dt, min=0.0))
+            k, rej_t = self.G.rejection_gain(k, dist > 0.5, ms[7], p[K.P_MAG_MAX_REJ_T], p[K.P_MAG_REJ_FACTOR], dt)
             w.add(MAG_SCALARS, torch.cat([ref, cnd, torch.stack([und_t, cand_t, dist, rej_t])]))
-        # fast initial convergence: gain at least 1/N over the first samples, until t > tau_mag
-        active = kminit != 0.0
-        k = torch.where(active & (k < kminit), kminit, k)
-        ki_next = kminit / (kminit + 1.0)
-        ki_mag = torch.where(active, torch.where(ki_next * p[K.P_TAU_MAG] < dt, 0.0, ki_next), kminit)
+        k, ki_mag = self.G.initial_gain(k, kminit, p[K.P_TAU_MAG], dt)
         delta = s[K.S_DELTA]
-        dis = heading - delta
-        dis = torch.where(dis > math.pi, dis - 2.0 * math.pi, torch.where(dis < -math.pi, dis + 2.0 * math.pi, dis))
-        delta = delta + mag_trust * k * dis
-        delta = torch.where(delta > math.pi, delta - 2.0 * math.pi,
-                            torch.where(delta < -math.pi, delta + 2.0 * math.pi, delta))
-        w.add([K.S_DELTA], delta.reshape(1))
+        w.add([K.S_DELTA], self.G.wrap_pi(delta + mag_trust * k * self.G.wrap_pi(heading - delta)).reshape(1))
         return torch.where(skip_mag, kminit, ki_mag)
 
     def quat(self, s: Tensor) -> Tensor:

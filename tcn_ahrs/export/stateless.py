@@ -319,7 +319,7 @@ class StatefulLoop:
 
 # ============================================================== export preparation
 SUPPORTED = ("the residual models (model.loop: backbone): checkpoints/broad9, broad6, general6, general9, "
-             "euroc6_small and checkpoints/residual/*.ckpt; and tuned ECF files (checkpoints/tumvi6.json, oxiod9.json)")
+             "euroc6_residual_small and checkpoints/residual/*.ckpt; and tuned ECF files (checkpoints/tumvi6_ecf.json, oxiod9_ecf.json)")
 
 
 def prepare(ckpt_path, targets: List, fmt: str, rate_hz: Optional[float] = None, overwrite: bool = False,

@@ -40,10 +40,12 @@ class ECFParams:
     """The ECF's parameters, meaning, unit and default once: read by :func:`ecf`, the estimator
     registry (:class:`tcn_ahrs.estimators.classical.ECF`) and its tuning grid."""
 
-    k_norm: float = knob(0.5, "1/s", "the steady-state correction gain (Eq. 8)", (0.01, 5.0))
+    k_norm: float = knob(0.5, "1/s", "the steady-state correction gain (Eq. 8)", (0.01, 5.0),
+                          grid=[0.05, 0.1, 0.2, 0.5, 1.0, 2.0])
     k_init: float = knob(10.0, "1/s", "the gain at the start, decaying to k_norm over t_init")
     t_init: float = knob(3.0, "s", "the start's length")
-    a_min: float = knob(1.0, "m/s²", "the accelerometer used while | |a| - g | < a_min (Eq. 7)", (0.1, 5.0))
+    a_min: float = knob(1.0, "m/s²", "the accelerometer used while | |a| - g | < a_min (Eq. 7)", (0.1, 5.0),
+                         grid=[0.3, 1.0, 3.0])
     m_min: float = knob(20.0, "µT", "the magnetometer used while its norm lies in [m_min, m_max]")
     m_max: float = knob(70.0, "µT", "the magnetometer's largest norm used")
 

@@ -67,6 +67,7 @@ from torch import Tensor
 
 from .. import so3
 from ..conventions import GRAVITY
+from ..kernels.params import knob
 from .compiled import eskf_loop, use_compiled
 from .common import converter_like, flatten_batch, normalize, unflatten
 from .kalman import chi2_threshold, kalman_update, symmetrize
@@ -139,12 +140,13 @@ class ESEKFParams:
     """The ES-EKF's parameters, meaning, unit and default once: read by :func:`eskf` and the
     estimator registry (:class:`tcn_ahrs.estimators.classical.ESEKF`)."""
 
-    gyro_noise: float = 1e-3  # rad/s/sqrt(Hz), gyro white-noise density
-    bias_walk: float = 1e-5  # rad/s²/sqrt(Hz), gyro bias random-walk density
-    accel_noise: float = 0.05  # m/s²/sqrt(Hz), accelerometer measurement noise density
-    mag_noise: float = 0.05  # rad/sqrt(Hz), the field direction's noise
-    init_att_std: float = 0.1  # rad
-    init_bias_std: float = 0.01  # rad/s
+    gyro_noise: float = knob(1e-3, "rad/s/√Hz", "gyro white-noise density")
+    bias_walk: float = knob(1e-5, "rad/s²/√Hz", "gyro bias random-walk density")
+    accel_noise: float = knob(0.05, "m/s²/√Hz", "accelerometer measurement noise density",
+                              grid=[0.01, 0.03, 0.1, 0.3])
+    mag_noise: float = knob(0.05, "rad/√Hz", "the field direction's noise", grid=[0.01, 0.03, 0.1, 0.3])
+    init_att_std: float = knob(0.1, "rad", "initial attitude uncertainty")
+    init_bias_std: float = knob(0.01, "rad/s", "initial bias uncertainty")
 
 
 @dataclass

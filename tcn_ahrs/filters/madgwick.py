@@ -43,7 +43,8 @@ class MadgwickParams:
     registry (:class:`tcn_ahrs.estimators.classical.Madgwick`) and the family search."""
 
     beta: Optional[float] = knob(None, "rad/s", "the gradient-descent gain; None: BETA_IMU with 6 axes, "
-                                 "BETA_MARG with 9 (ahrs's defaults)", (1e-3, 0.5))
+                                 "BETA_MARG with 9 (ahrs's defaults)", (1e-3, 0.5),
+                                 grid=[0.005, 0.01, 0.02, 0.033, 0.05, 0.1, 0.2])
 
     @staticmethod
     def default_beta(axes: int) -> float:

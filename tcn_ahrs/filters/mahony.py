@@ -37,8 +37,8 @@ class MahonyParams:
     """Mahony's parameters, meaning, unit and default once: read by :func:`mahony` and the
     estimator registry (:class:`tcn_ahrs.estimators.classical.Mahony`)."""
 
-    k_p: float = knob(1.0, "1/s", "the proportional gain", (0.01, 10.0))
-    k_i: float = knob(0.3, "1/s²", "the integral (gyro bias) gain", (1e-4, 1.0))
+    k_p: float = knob(1.0, "1/s", "the proportional gain", (0.01, 10.0), grid=[0.1, 0.3, 1.0, 3.0])
+    k_i: float = knob(0.3, "1/s²", "the integral (gyro bias) gain", (1e-4, 1.0), grid=[0.0, 0.01, 0.1, 0.3])
     compat: bool = knob(False, "flag", "``ahrs.filters.Mahony``'s update order, for the cross-check")
 
 

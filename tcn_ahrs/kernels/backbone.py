@@ -39,8 +39,9 @@ from .backbone_layout import (  # noqa: F401 (the layout, read by the step as co
     S_GFROZEN, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES, S_GMAX, S_GCLIPPED, S_AMAX,
     S_ACLIPPED, P_GCLIP_FLOOR, P_ACLIP_FLOOR, CLIP_MIN_REPEATS, S_TS_TYP, S_GAP, P_GAP_F, S_HEAD_RESTART, S_ADISTRUST,
     S_MPREV, S_MSAME_T, S_MFROZEN, MAG_FROZEN_MIN_T)
+from . import backbone_gains as _gains_float
 from . import quat as _quat
-from .ops import float_ops
+from .ops import float_ops, load_kernel
 
 # ------------------------------------------------------------------------------ the step
 # The ops table this module is built with: the float table (numba) when imported normally;
@@ -51,24 +52,24 @@ sqrt, sin, cos, tan, exp, atan2, asin, fabs = (ops.sqrt, ops.sin, ops.cos, ops.t
                                                ops.asin, ops.fabs)
 fmax, clip = ops.fmax, ops.clip
 PI = math.pi
-# the quaternion product and rotation, the 3x3 product A Bᵀ of kernels/quat.py, in this table's reading
-qmul, qrot, mat3_mul_t = jit(_quat.qmul), jit(_quat.qrot), jit(_quat.mat3_mul_t)
+# the formulas shared with the exported graph (coefficients, gains), in this table's reading
+_gains = _gains_float if ops.name == "float" else load_kernel(_gains_float, ops)
+butter_terms, first_order_gain, bias_noise = _gains.butter_terms, _gains.first_order_gain, _gains.bias_noise
+wrap_pi, rejection_gain, initial_gain = _gains.wrap_pi, _gains.rejection_gain, _gains.initial_gain
+# the quaternion product, rotation and matrix, the 3x3 product A Bᵀ of kernels/quat.py, in this table's reading
+qmul, qrot, qmat, mat3_mul_t = jit(_quat.qmul), jit(_quat.qrot), jit(_quat.qmat), jit(_quat.mat3_mul_t)
 
 # ------------------------------------------------------------------ coefficients
 @jit
 def butter(c, at_b, at_a, tau, ts):
-    """2nd-order Butterworth low-pass (VQF's filterCoeffs): cut-off √2/(2π τ); passthrough when
-    τ < ts/2 (cut-off beyond 90 % of Nyquist)."""
-    fc = math.sqrt(2.0) / (2.0 * PI * tau)
-    cc = tan(PI * fc * ts)
-    d = cc * cc + math.sqrt(2.0) * cc + 1.0
-    b0 = cc * cc / d
+    """:func:`butter_terms` into ``c``; passthrough when τ < ts/2 (cut-off beyond 90 % of Nyquist)."""
+    b0, a1, a2 = butter_terms(tau, ts)
     thru = tau < ts / 2.0
     c[at_b] = where(thru, 1.0 + 0.0 * b0, b0)
     c[at_b + 1] = where(thru, 0.0 * b0, 2.0 * b0)
     c[at_b + 2] = where(thru, 0.0 * b0, b0)
-    c[at_a] = where(thru, 0.0 * b0, 2.0 * (cc * cc - 1.0) / d)
-    c[at_a + 1] = where(thru, 0.0 * b0, (1.0 - math.sqrt(2.0) * cc + cc * cc) / d)
+    c[at_a] = where(thru, 0.0 * b0, a1)
+    c[at_a + 1] = where(thru, 0.0 * b0, a2)
 
 @jit
 def coefficients(p, ts, c):
@@ -76,17 +77,11 @@ def coefficients(p, ts, c):
     butter(c, C_ACC_B, C_ACC_A, p[P_TAU_ACC], ts)
     butter(c, C_REST_B, C_REST_A, p[P_REST_TAU], ts)
     butter(c, C_MAG_B, C_MAG_A, fmax(p[P_MAG_CUR_TAU], 1e-9), ts)
-    c[C_KMAG] = 1.0 - exp(-ts / p[P_TAU_MAG])   # gain of a first-order filter, 1/e time tau
-    c[C_KMAGREF] = 1.0 - exp(-ts / p[P_MAG_REF_TAU])
-    c[C_P0] = (p[P_SIGMA_INIT] * 100.0) ** 2     # covariances in (0.01 °/s)², as VQF
-    # the system noise grows the variance from 0 to (0.1 °/s)² in bias_forgetting_time
-    v = (0.1 * 100.0) ** 2 * ts / p[P_FORGET]
-    c[C_V] = v
-    pm = (p[P_SIGMA_MOTION] * 100.0) ** 2
-    c[C_WM] = pm * pm / v + pm
-    c[C_WV] = c[C_WM] / fmax(p[P_VERT_FORGET], 1e-10)
-    pr = (p[P_SIGMA_REST] * 100.0) ** 2
-    c[C_WR] = pr * pr / v + pr
+    c[C_KMAG] = first_order_gain(p[P_TAU_MAG], ts)
+    c[C_KMAGREF] = first_order_gain(p[P_MAG_REF_TAU], ts)
+    p0, v, wm, wv, wr = bias_noise(p[P_SIGMA_INIT], p[P_FORGET], p[P_SIGMA_MOTION], p[P_VERT_FORGET],
+                                   p[P_SIGMA_REST], ts)
+    c[C_P0], c[C_V], c[C_WM], c[C_WV], c[C_WR] = p0, v, wm, wv, wr
 
 # ------------------------------------------------------------------ low-pass filters
 # A group of d components at s[f]: [running, count, x1 (d), x2 (d), y1 (d), y2 (d)]. For the first
@@ -286,15 +281,7 @@ def bias_update(s, p, c, v0, v1, bias_trust):
     ts = c[C_TS]
     b0, b1, b2 = s[S_BIAS], s[S_BIAS + 1], s[S_BIAS + 2]
     w, x, y, z = quat6(s)
-    r00 = 1 - 2 * y * y - 2 * z * z
-    r01 = 2 * (y * x - w * z)
-    r02 = 2 * (w * y + z * x)
-    r10 = 2 * (w * z + y * x)
-    r11 = 1 - 2 * x * x - 2 * z * z
-    r12 = 2 * (y * z - x * w)
-    r20 = 2 * (z * x - w * y)
-    r21 = 2 * (w * x + z * y)
-    r22 = 1 - 2 * x * x - 2 * y * y
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = qmat(w, x, y, z)
     rb0 = r00 * b0 + r01 * b1 + r02 * b2
     rb1 = r10 * b0 + r11 * b1 + r12 * b2
     run, n, start = lp_begin(s, F_ROT, p[P_TAU_ACC], ts)
@@ -420,19 +407,9 @@ def mag_update(s, p, c, mx, my, mz, mag_trust):
         s[S_MCAND_T], s[S_MCAND_N], s[S_MCAND_D] = cand_t, cand_n, cand_d
         # rejection: no heading correction while disturbed, for at most mag_max_rejection_time,
         # then a reduced gain; the allowance recovers at mag_rejection_factor × real time
-        disturbed = s[S_MAGDIST] > 0.5
-        within = s[S_MREJ_T] <= p[P_MAG_MAX_REJ_T]
-        k = where(disturbed, where(within, 0.0 * k, k / p[P_MAG_REJ_FACTOR]), k)
-        s[S_MREJ_T] = where(disturbed, where(within, s[S_MREJ_T] + ts, s[S_MREJ_T]),
-                            fmax(s[S_MREJ_T] - p[P_MAG_REJ_FACTOR] * ts, 0.0 * norm))
-    # fast initial convergence: gain at least 1/N over the first samples, until t > tau_mag
-    ki = s[S_KMINIT]
-    active = ki != 0.0
-    k = where(both(active, k < ki), ki + 0.0 * k, k)
-    ki_next = ki / (ki + 1.0)
-    s[S_KMINIT] = where(active, where(ki_next * p[P_TAU_MAG] < ts, 0.0 * ki, ki_next), ki)
+        k, rej_t = rejection_gain(k, s[S_MAGDIST] > 0.5, s[S_MREJ_T], p[P_MAG_MAX_REJ_T], p[P_MAG_REJ_FACTOR], ts)
+        s[S_MREJ_T] = rej_t
+    k, ki = initial_gain(k, s[S_KMINIT], p[P_TAU_MAG], ts)
+    s[S_KMINIT] = ki
     # heading disagreement, wrapped to [-pi, pi]; the learned trust scales the gain
-    dis = atan2(m0, m1) - s[S_DELTA]
-    dis = where(dis > PI, dis - 2.0 * PI, where(dis < -PI, dis + 2.0 * PI, dis))
-    delta = s[S_DELTA] + mag_trust * k * dis
-    s[S_DELTA] = where(delta > PI, delta - 2.0 * PI, where(delta < -PI, delta + 2.0 * PI, delta))
+    s[S_DELTA] = wrap_pi(s[S_DELTA] + mag_trust * k * wrap_pi(atan2(m0, m1) - s[S_DELTA]))

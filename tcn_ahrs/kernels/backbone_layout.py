@@ -28,14 +28,15 @@ class BackboneParams:
     Units: seconds, degrees and °/s where named so (as VQF's), m/s² for ``rest_th_acc``,
     fractions for ``mag_norm_th``. Flags are 1.0 / 0.0 (kept as floats: one flat vector)."""
 
-    tau_acc: float = knob(3.0, "s", "low-pass of the accelerometer in the inertial frame", (0.5, 30.0))
-    tau_mag: float = knob(9.0, "s", "heading correction time constant", (1.0, 60.0))
-    motion_bias: float = knob(1.0, "flag", "bias estimation in motion", [1.0, 0.0])
+    tau_acc: float = knob(3.0, "s", "low-pass of the accelerometer in the inertial frame", (0.5, 30.0),
+                           grid=[1.0, 3.0, 10.0])
+    tau_mag: float = knob(9.0, "s", "heading correction time constant", (1.0, 60.0), grid=[3.0, 9.0, 20.0])
+    motion_bias: float = knob(1.0, "flag", "bias estimation in motion", [1.0, 0.0], grid=[1.0, 0.0])
     rest_bias: float = knob(1.0, "flag", "rest detection and bias estimation at rest")
     mag_rejection: float = knob(1.0, "flag", "magnetic disturbance detection and rejection", [1.0, 0.0])
     bias_sigma_init: float = knob(0.5, "°/s", "initial bias uncertainty", (0.1, 10.0))
     bias_forgetting_time: float = knob(100.0, "s", "time for the bias variance to grow to 0.1 °/s", (10.0, 1000.0))
-    bias_clip: float = knob(2.0, "°/s", "largest bias estimate (and disagreement)", (0.5, 15.0))
+    bias_clip: float = knob(2.0, "°/s", "largest bias estimate (and disagreement)", (0.5, 15.0), grid=[2.0, 8.0])
     bias_sigma_motion: float = knob(0.1, "°/s", "bias measurement noise in motion", (0.01, 1.0))
     bias_vertical_forgetting: float = knob(1e-4, "", "vertical bias measurement weight factor")
     bias_sigma_rest: float = knob(0.03, "°/s", "bias measurement noise at rest", (0.003, 0.3))

@@ -5,7 +5,9 @@ draws it from, in one dataclass field (``knob``); the families' knobs, defaults 
 ``MadgwickParams``), never restated.
 
 ``search``: ``(low, high)`` — log-uniform in the search; a list — one of its values; None — not
-searched (a physical constant or a switch left at its default).
+searched (a physical constant or a switch left at its default). ``grid``: the points the
+estimator registry's tuning tries (``tcn-ahrs compare``'s tuned columns; the estimators'
+``default_grid`` and ``tunable`` are read from it: :func:`tuning_grid`).
 """
 from __future__ import annotations
 
@@ -13,9 +15,14 @@ from dataclasses import field, fields
 from typing import Any, Dict, Optional
 
 
-def knob(default: Any, unit: str, meaning: str, search: Optional[object] = None):
-    """A dataclass field with its ``unit``, ``meaning`` and ``search`` range in its metadata."""
-    return field(default=default, metadata={"unit": unit, "meaning": meaning, "search": search})
+def knob(default: Any, unit: str, meaning: str, search: Optional[object] = None, grid: Optional[list] = None):
+    """A dataclass field with its ``unit``, ``meaning``, ``search`` range and tuning ``grid`` in its metadata."""
+    return field(default=default, metadata={"unit": unit, "meaning": meaning, "search": search, "grid": grid})
+
+
+def tuning_grid(cls) -> Dict[str, list]:
+    """{name: points} of the fields of ``cls`` the registry's tuning tries (in field order)."""
+    return {f.name: list(f.metadata["grid"]) for f in fields(cls) if f.metadata.get("grid") is not None}
 
 
 def searched(cls) -> Dict[str, object]:

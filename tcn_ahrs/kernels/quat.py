@@ -61,6 +61,14 @@ def qrot(q0: float, q1: float, q2: float, q3: float, v0: float, v1: float, v2: f
     return x, y, z
 
 
+def qmat(w: float, x: float, y: float, z: float
+         ) -> Tuple[float, float, float, float, float, float, float, float, float]:
+    """The rotation matrix of a unit quaternion (q v q* = R v), row by row: :func:`qrot`'s terms."""
+    return (1 - 2 * y * y - 2 * z * z, 2 * (y * x - w * z), 2 * (w * y + z * x),
+            2 * (w * z + y * x), 1 - 2 * x * x - 2 * z * z, 2 * (y * z - x * w),
+            2 * (z * x - w * y), 2 * (w * x + z * y), 1 - 2 * x * x - 2 * y * y)
+
+
 def qnormalize(w: float, x: float, y: float, z: float) -> Tuple[float, float, float, float]:
     """q / max(|q|, 1e-12) (so3._eps for float64)."""
     n = math.sqrt(w * w + x * x + y * y + z * z)

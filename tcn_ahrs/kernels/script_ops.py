@@ -22,9 +22,24 @@ from typing import Dict
 VECTORS = frozenset({"s", "p", "c"})          # state, parameters, coefficients: List[float]
 # flat indices and counts
 INTS = frozenset({"f", "d", "i", "at_b", "at_a", "prev", "same_t", "same_n", "flag", "maxabs", "clipflag"})
-BOOLS = frozenset({"run", "start", "use_mag", "held"})
+BOOLS = frozenset({"run", "start", "use_mag", "held", "disturbed"})
 # modules of typed scalar kernels (annotated for TorchScript) an ops-table kernel may bind
 TYPED_MODULES = frozenset({"tcn_ahrs.kernels.quat"})
+# ops-table kernel modules whose @jit functions a kernel binds (``butter_terms = _gains.butter_terms``):
+# read as the binding module's own kernels (the formulas the exported vector graph shares)
+KERNEL_MODULES = frozenset({"tcn_ahrs.kernels.backbone_gains"})
+
+
+def bound_kernels(module: ModuleType):
+    """(name, function, its module is typed) of every kernel ``module`` binds from
+    :data:`TYPED_MODULES` or :data:`KERNEL_MODULES`, under its own name (else ValueError)."""
+    for name, obj in vars(module).items():
+        fn = getattr(obj, "py_func", obj)  # a numba dispatcher's Python function
+        if (inspect.isfunction(fn) and fn.__module__ in TYPED_MODULES | KERNEL_MODULES
+                and fn.__module__ != module.__name__):   # a module's own kernels are not bound ones
+            if fn.__name__ != name:
+                raise ValueError(f"{module.__name__}.{name}: bind kernels under their own name ({fn.__name__})")
+            yield name, fn, fn.__module__ in TYPED_MODULES
 
 OPS_SOURCE = '''
 def where(c: bool, a: float, b: float) -> float:
@@ -96,16 +111,17 @@ def script_source(module: ModuleType) -> str:
                               and not isinstance(v, bool)}
     pattern = re.compile(r"\b(" + "|".join(sorted(consts, key=len, reverse=True)) + r")\b")
     parts = [OPS_SOURCE]
-    for name, obj in vars(module).items():  # typed kernels bound by the module, under their own names
-        fn = getattr(obj, "py_func", obj)  # a numba dispatcher's Python function
-        if inspect.isfunction(fn) and fn.__module__ in TYPED_MODULES:
-            if fn.__name__ != name:
-                raise ValueError(f"{module.__name__}.{name}: bind typed kernels under their own name ({fn.__name__})")
+    nodes = []   # (source, function node) of the kernels read as this module's own
+    for _, fn, typed in bound_kernels(module):  # bound kernels first: the module's own call them
+        if typed:
             parts.append(inspect.getsource(fn))
-    for node in tree.body:
-        if not isinstance(node, ast.FunctionDef) or not node.decorator_list:
-            continue  # the kernels are the decorated (@jit) functions
-        seg = ast.get_source_segment(text, node)
+        else:
+            src = inspect.getsource(fn)
+            nodes.append((src, ast.parse(src).body[0]))
+    # the kernels are the decorated (@jit) functions
+    nodes += [(text, n) for n in tree.body if isinstance(n, ast.FunctionDef) and n.decorator_list]
+    for src, node in nodes:
+        seg = ast.get_source_segment(src, node)
         args = ", ".join(_typed(a.arg) for a in node.args.args)
         body = seg.split("\n", 1)[1]
         body = pattern.sub(lambda m: consts[m.group(1)], body)

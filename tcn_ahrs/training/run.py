@@ -138,7 +138,7 @@ def _data(cfg: DictConfig, axes: int, probe: LearnedAHRS, init_model, train_seqs
     supervision = str(cfg.train.get("supervision") or _T.supervision)
     if supervision == "self" and (probe.backbone is None or init_model is None):
         raise ValueError("train.supervision=self: fine-tunes a residual model without ground truth; set "
-                         "init=<checkpoint of a residual model> (e.g. checkpoints/general9.ckpt)")
+                         "init=<checkpoint of a residual model> (e.g. checkpoints/general9_residual.ckpt)")
     dm = AHRSDataModule(cfg.data, axes, cfg.train.window, cfg.train.stride, cfg.train.batch_size,
                         train_seqs, val_seqs, margin=margin, balance=bool(cfg.train.get("balance")),
                         supervision=supervision, device_check=bool(cfg.train.get("device_check", _T.device_check)))

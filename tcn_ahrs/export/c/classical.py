@@ -7,6 +7,7 @@ The same API as the residual models' runtime (``name_reset``, ``name_step``, ``n
 from __future__ import annotations
 
 import re
+from dataclasses import fields
 from typing import Any, Dict
 
 import numpy as np
@@ -45,9 +46,8 @@ def generate_classical_c(doc: Dict[str, Any], name: str, source: str = "a tcn-ah
     subst = {
         "NAME": name, "UP": name.upper(), "C": str(axes), "SOURCE": source.replace("*/", "* /"),
         "KERNELS": "\n".join(kern), "USE_MAG": "1" if axes == 9 else "0",
-        "K_NORM": repr(float(knobs["k_norm"])), "K_INIT": repr(float(knobs["k_init"])),
-        "T_INIT": repr(float(knobs["t_init"])), "A_MIN": repr(float(knobs["a_min"])),
-        "M_MIN": repr(float(knobs["m_min"])), "M_MAX": repr(float(knobs["m_max"])), "GRAVITY": repr(float(GRAVITY)),
+        # every ECFParams field as @K_NORM@, @A_MIN@, ... (the template names them all)
+        **{f.name.upper(): repr(float(knobs[f.name])) for f in fields(ECFParams)}, "GRAVITY": repr(float(GRAVITY)),
         "GYRO_INV": _lits(inv(cal.gyro_matrix)), "ACC_INV": _lits(inv(cal.acc_matrix)),
         "MAG_INV": _lits(inv(cal.mag_matrix)), "GYRO_BIAS": _lits(cal.gyro_bias), "ACC_BIAS": _lits(cal.acc_bias),
         "HARD_IRON": _lits(cal.hard_iron), "LIMITS": _f64(INPUT_LIMITS[:axes]), "MAX_DT": repr(float(MAX_DT)), "MIN_DT": repr(float(MIN_DT)),

@@ -17,7 +17,8 @@ a silent guess):
   appended to the parameters), tuple-unpacking calls (``a, b = f(x)`` -> ``f(x, &a, &b)``);
 * ``if`` / ``else`` (on parameters: data never branches a kernel), ``for i in range(n)``;
 * module constants (upper-case ints and floats) written in as literals;
-* the typed scalar kernels the module binds (``qmul = jit(quat.qmul)``) translated from their
+* the typed scalar kernels the module binds (``qmul = jit(quat.qmul)``) and the ops-table
+  kernels it binds from :data:`~tcn_ahrs.kernels.script_ops.KERNEL_MODULES` translated from their
   own source the same way.
 
 The scalar type is the macro ``REAL`` of the generated file (double or float): every float
@@ -34,7 +35,7 @@ from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Dict, List, Sequence, Tuple
 
-from ...kernels.script_ops import BOOLS, INTS, TYPED_MODULES, VECTORS
+from ...kernels.script_ops import BOOLS, INTS, VECTORS, bound_kernels
 from ..inputs import ExportError
 
 REAL, INT, BOOL = "REAL", "int", "bool"
@@ -75,13 +76,14 @@ class KernelTypes:
                                           if re.fullmatch(r"[A-Z][A-Z0-9_]*", k) and isinstance(v, (int, float))
                                           and not isinstance(v, bool)}
         self.fns: Dict[str, KernelFunction] = {}
-        # the typed scalar kernels the module binds (qmul = jit(quat.qmul)), then its own kernels
-        for name, obj in vars(module).items():
-            fn = getattr(obj, "py_func", obj)
-            if inspect.isfunction(fn) and fn.__module__ in TYPED_MODULES and not (plain and fn.__module__ == module.__name__):
-                if fn.__name__ != name:
-                    raise ExportError(f"{module.__name__}.{name}: bind typed kernels under their own name")
-                self._add(ast.parse(inspect.getsource(fn)).body[0])
+        # the kernels the module binds (qmul = jit(quat.qmul); the shared formulas of another ops-table
+        # kernel, butter_terms = _gains.butter_terms), then its own kernels
+        try:
+            bound = [fn for _, fn, _ in bound_kernels(module)]
+        except ValueError as e:
+            raise ExportError(str(e)) from None
+        for fn in bound:
+            self._add(ast.parse(inspect.getsource(fn)).body[0])
         tree = ast.parse(inspect.getsource(module))
         for node in tree.body:
             # the @jit kernels (or, plain: every top-level function, the typed kernels of classical.py)
