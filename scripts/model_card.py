@@ -23,15 +23,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from nested_table import rows  # noqa: E402
 
 from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint, model_from_checkpoint  # noqa: E402
-from tcn_ahrs.config.renamed import CHECKPOINTS, experiment_name  # noqa: E402
+from tcn_ahrs.config.renamed import experiment_name  # noqa: E402
 
 
 def matrix_row(tr_json, name):
-    """The transfer matrix's row of the shipped model ``name`` (a matrix run before the renames keys
-    it by the old name: tcn_ahrs/config/renamed.py)."""
-    matrix = json.loads(Path(tr_json).read_text())["matrix"]
-    old = next((o for o, n in CHECKPOINTS.items() if n == name), None)
-    return matrix.get(name) or matrix.get(old, {})
+    """The transfer matrix's row of the shipped model ``name``."""
+    return json.loads(Path(tr_json).read_text())["matrix"].get(name, {})
 
 
 def cost_lines(model, log=None):

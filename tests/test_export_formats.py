@@ -189,7 +189,7 @@ def test_metadata_round_trip(exported):
     loaded = OnnxStreaming(ex["onnx"]["streaming"])
     assert loaded.metadata == read_onnx_metadata(ex["onnx"]["streaming"])
     assert len(loaded.state) == loaded.metadata["state"]["size"]
-    assert ExportedStreaming(ex["pt2"]["streaming"]).metadata["checkpoint"] == f"{ex['name']}.ckpt"
+    assert ExportedStreaming(ex["pt2"]["streaming"]).metadata["checkpoint"] == ex["ckpt"].name
     with pytest.raises(ExportError, match="already exist"):
         export_onnx(ex["ckpt"], ex["onnx"]["batch"])
     with pytest.raises(ExportError, match="step graph"):

@@ -287,7 +287,7 @@ def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict
             "bias start it learned, a classical filter" if off else "learned")
     card = "\n".join([
         f"# release.ckpt: {name} for {cfg.data.name} ({axes}-axis)", "",
-        f"- family: {name}, {what} (recipe `{recipe}`: {' '.join(RECIPES[recipe][1]).format(axes=axes)})",
+        f"- family: {name}, {what} (recipe `{recipe}`: {' '.join(RECIPES[recipe][1]).format(axes=axes, shipped='checkpoints')})",
         f"- trained on {len(train)} recordings ({', '.join(s.name for s in train)}); epoch / inference knobs chosen on "
         f"{', '.join(s.name for s in val)}",
         f"- chosen by `tcn-ahrs search` on {sum(r['chosen'] == name for r in result['rows'])} of "

@@ -17,24 +17,26 @@ import math
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Sequence, Tuple
 
+from ...checkpoints import SHIPPED_DIR
 from ...sequence import ImuSequence
 
 RECIPES: Dict[str, Tuple[str, Tuple[str, ...]]] = {
     # the general model's residual networks fine-tuned on the device (its short schedule); it keeps
     # the general model where the inner validation says fine-tuning did not help
     "finetune": ("residual (fine-tuned general)",
-                 ("experiment=finetune", "init=checkpoints/general{axes}.ckpt", "train.supervision=gt",
+                 ("experiment=finetune", "init={shipped}/general{axes}_residual.ckpt", "train.supervision=gt",
                   "train.adopt_on=parts")),  # its validation recordings are already others than it trained on
     # the residual on the backbone trained longer at the residual schedule's learning rate, started
     # from the general model's weights (same architecture, both axes)
     "residual": ("residual (trained)",
-                 ("experiment=finetune", "init=checkpoints/general{axes}.ckpt", "train.supervision=gt",
+                 ("experiment=finetune", "init={shipped}/general{axes}_residual.ckpt", "train.supervision=gt",
                   "train.epochs=12", "train.lr=0.001", "train.keep_if_not_better=false")),
     # the learned closed loop (EuRoC's shipped family); another architecture: trained from scratch
     "closed_loop": ("closed_loop (trained)",
                     ("model=ahrs{axes}", "+schedule=closed_loop", "train.epochs=10", "train.device_check=true")),
 }
-"""Learned recipe -> (candidate name, ``conf/train.yaml`` overrides; ``{axes}`` is the data's)."""
+"""Learned recipe -> (candidate name, ``conf/train.yaml`` overrides; ``{axes}`` is the data's, ``{shipped}`` the
+installed models' folder, :data:`tcn_ahrs.checkpoints.SHIPPED_DIR`)."""
 
 
 def check_recipes(names: Sequence[str]) -> List[str]:
@@ -87,7 +89,7 @@ def train_recipe(recipe: str, run_dir: Path, train: Sequence[ImuSequence], val: 
     done = run_dir / "TRAINED"
     if done.is_file():
         return Path(done.read_text().strip())
-    args = [a.format(axes=axes) for a in RECIPES[recipe][1]] + list(data_args)
+    args = [a.format(axes=axes, shipped=SHIPPED_DIR) for a in RECIPES[recipe][1]] + list(data_args)
     # Lightning's accelerator is "auto": a GPU trains when there is one; its bar would break the search's
     args += [f"run_dir={run_dir}", "eval.enabled=false", f"seed={seed}", f"train.max_time={_max_time(minutes)}",
              "trainer.enable_progress_bar=false"]
