@@ -1,12 +1,17 @@
 """Speed benchmark smoke test: tiny sizes, the expected fields and files; no timing assertions."""
 import json
 import math
+import shutil
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from tcn_ahrs import bench
 from tcn_ahrs.losses import increment_loss
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _finite_pos(x):
@@ -96,6 +101,22 @@ def test_broad_epoch_constant_fallback():
     assert "constant" in e["source"]
 
 
+def test_the_aoti_row_steps_a_compiled_step_program(tmp_path):
+    """The deploy section's AOTInductor row on the smallest step graph the exporter writes (a tuned
+    ECF file: compiling broad9's backbone graph takes ~60 s; the same code path)."""
+    pytest.importorskip("torch._inductor")
+    if shutil.which("c++") is None and shutil.which("g++") is None:
+        pytest.skip("no C++ compiler")
+    from tcn_ahrs.bench.deploy import _aoti_step
+    from tcn_ahrs.datasets.simulate import simulate
+
+    seq = simulate("walking", 2.0, 100.0, seed=0, axes=6)
+    imu = np.concatenate([seq.gyro, seq.accel], 1)
+    row = _aoti_step(REPO / "checkpoints" / "tumvi6_ecf.json", imu, 0.01, np.array([1.0, 0.0, 0.0, 0.0]), 5,
+                     tmp_path / "m")
+    assert row["steps"] == 5 and _finite_pos(row["median_us"])
+
+
 def test_deploy_section_rows_goals_and_footprint(tmp_path):
     """The deploy section at tiny sizes (ONNX and torch.export off): the C rows of the default
     checkpoint (broad9: both networks off, the backbone alone), the other checkpoints' C loops
@@ -108,7 +129,7 @@ def test_deploy_section_rows_goals_and_footprint(tmp_path):
         pytest.skip("no C compiler")
     pytest.importorskip("vqf")
     res = bench_deploy({"ckpt": "checkpoints/broad9_residual.ckpt", "rate": 285.71, "samples": 40, "warmup": 5,
-                        "slow_steps": 3, "c": True, "onnx": False, "export": False,
+                        "slow_steps": 3, "c": True, "onnx": False, "export": False, "aoti": False,
                         "footprint_glob": "checkpoints/*.ckpt,checkpoints/residual/*.ckpt",
                         "c_models": ["checkpoints/residual/oxiod9.ckpt", "checkpoints/euroc6_residual_small.ckpt", "checkpoints/nope.ckpt"]})
     names = [r["name"] for r in res["rows"]]

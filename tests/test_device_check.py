@@ -76,16 +76,15 @@ def test_handheld_tum_vi_never_rests_and_euroc_reads_its_bias():
     assert corrected < 3.0 < 50.0 < raw
 
 
-def test_evaluate_without_a_checkpoint_checks_the_device_first(tmp_path):
+def test_evaluate_without_a_checkpoint_checks_the_device_first(tmp_path, capsys):
     """``tcn-ahrs evaluate`` with no ckpt (the default: the backbone with VQF's defaults) and with
     ``ckpt=general6_residual`` (a named general model) on a 6-axis device with a 5 °/s gyro bias: the check
     is printed per recording and every method runs on the corrected readings (without it VQF and
     the backbone are far off: the bias is beyond their clip)."""
     import json
-    import subprocess
-    import sys
 
-    repo = Path(__file__).resolve().parents[1]
+    from tcn_ahrs.cli import main
+
     seq = simulate("walking", 60.0, 100.0, seed=3, device_seed=4, gyro_bias_range_dps=(4.9, 5.0))
     (tmp_path / "data").mkdir()
     np.savetxt(tmp_path / "data" / "biased.csv",
@@ -95,13 +94,13 @@ def test_evaluate_without_a_checkpoint_checks_the_device_first(tmp_path):
     for ckpt in ([], ["ckpt=general6_residual"]):
         for mode in ("auto", "false"):
             out = tmp_path / f"{mode}{len(ckpt)}"
-            r = subprocess.run([sys.executable, "scripts/evaluate.py", "data=generic", f"data.root={tmp_path / 'data'}",
-                                "data.axes=6", "data.split=all", f"out={out}", f"hydra.run.dir={out}", "plots=false",
-                                "trajectories=false", f"device_check={mode}", "baselines=[vqf]", *ckpt],
-                               cwd=repo, capture_output=True, text=True, timeout=300)
-            assert r.returncode == 0, r.stderr
-            assert ("device check, biased: rests" in r.stdout) == (mode == "auto")
-            assert ("no ckpt given: the backbone with VQF's defaults" in r.stdout) == (not ckpt)
+            # in this process (the command's own entry point; four interpreters cost ~20 s of imports)
+            main(["evaluate", "data=generic", f"data.root={tmp_path / 'data'}", "data.axes=6", "data.split=all",
+                  f"out={out}", f"hydra.run.dir={out}", "plots=false", "trajectories=false", f"device_check={mode}",
+                  "baselines=[vqf]", *ckpt])
+            printed = capsys.readouterr().out
+            assert ("device check, biased: rests" in printed) == (mode == "auto")
+            assert ("no ckpt given: the backbone with VQF's defaults" in printed) == (not ckpt)
             res = json.loads((out / "results.json").read_text())["methods"]
             aae[mode + str(len(ckpt))] = {m: v["recordings"][0]["aae_deg"] for m, v in res.items()}
     # the default is the backbone with VQF's defaults: VQF's numbers to round-off, on either input
@@ -114,16 +113,14 @@ def test_evaluate_without_a_checkpoint_checks_the_device_first(tmp_path):
 
 
 @pytest.mark.parametrize("flagged", [True, False])
-def test_evaluate_checks_the_device_for_a_model_trained_on_checked_recordings(tmp_path, flagged):
+def test_evaluate_checks_the_device_for_a_model_trained_on_checked_recordings(tmp_path, flagged, capsys):
     """``device_check: auto`` with ``ckpt=``: a checkpoint trained with ``train.device_check`` (its
     layout says so; a fine-tuning's shipped model) is given checked recordings, one trained on raw
     readings is not."""
-    import subprocess
-    import sys
-
     import torch
 
     from tcn_ahrs.checkpoint import load_checkpoint
+    from tcn_ahrs.cli import main
 
     repo = Path(__file__).resolve().parents[1]
     ck = load_checkpoint(repo / "checkpoints" / "general6_residual.ckpt")
@@ -136,9 +133,7 @@ def test_evaluate_checks_the_device_for_a_model_trained_on_checked_recordings(tm
                np.column_stack([seq.time, seq.gyro, seq.accel, seq.quat]), delimiter=",", comments="",
                fmt="%.10g", header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,quat_w,quat_x,quat_y,quat_z")
     out = tmp_path / "eval"
-    r = subprocess.run([sys.executable, "scripts/evaluate.py", f"ckpt={tmp_path / 'model.ckpt'}", "data=generic",
-                        f"data.root={tmp_path / 'data'}", "data.axes=6", "data.split=all", f"out={out}",
-                        f"hydra.run.dir={out}", "plots=false", "trajectories=false", "baselines=[]"],
-                       cwd=repo, capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert ("device check, biased: rests" in r.stdout) == flagged
+    main(["evaluate", f"ckpt={tmp_path / 'model.ckpt'}", "data=generic", f"data.root={tmp_path / 'data'}",
+          "data.axes=6", "data.split=all", f"out={out}", f"hydra.run.dir={out}", "plots=false", "trajectories=false",
+          "baselines=[]"])
+    assert ("device check, biased: rests" in capsys.readouterr().out) == flagged
