@@ -67,9 +67,12 @@ def _loop(name: str, run: Callable[[], Any], n: int, repeats: int = 3) -> Dict[s
 
 
 _ISOLATED = """
-import sys, time, numpy as np
-from tcn_ahrs.export.c.runtime import CRuntime
+import importlib.util, sys, time, numpy as np
 so, name, axes, xs, dt = sys.argv[1], sys.argv[2], int(sys.argv[3]), sys.argv[4], float(sys.argv[5])
+spec = importlib.util.spec_from_file_location("cruntime", sys.argv[6])   # the ctypes wrapper alone: no torch
+module = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(module)
+CRuntime = module.CRuntime
 x, q0 = np.load(xs), np.load(xs.replace(".npy", "_q0.npy"))
 rt = CRuntime(so, name, axes)
 best = float("inf")
@@ -90,7 +93,9 @@ def _isolated_loop(so, name: str, axes: int, x, dt: float, q0, tmp: Path) -> Dic
     xs = tmp / f"x_{name}_{axes}.npy"
     np.save(xs, np.ascontiguousarray(x, dtype=np.float32))
     np.save(str(xs).replace(".npy", "_q0.npy"), np.asarray(q0, dtype=np.float32))
-    r = subprocess.run([sys.executable, "-c", _ISOLATED, str(so), name, str(axes), str(xs), repr(float(dt))],
+    from ..export.c.cruntime import PATH
+
+    r = subprocess.run([sys.executable, "-c", _ISOLATED, str(so), name, str(axes), str(xs), repr(float(dt)), str(PATH)],
                        capture_output=True, text=True, timeout=600)
     if r.returncode != 0:
         raise RuntimeError(f"isolated C loop failed: {r.stderr[-1000:]}")
