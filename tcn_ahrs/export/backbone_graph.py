@@ -80,7 +80,7 @@ class BackboneGraph(nn.Module):
         ham = hamilton().permute(0, 2, 1).reshape(16, 4)   # (ham @ p).reshape(4, 4) @ q = p ⊗ q
         self.register_buffer("ham", ham)
         self.register_buffer("matrix", rotation_rows((0, 1, 2)))
-        taus = [p[K.P_TAU_ACC], p[K.P_REST_TAU], max(p[K.P_MAG_CUR_TAU], 1e-9)]
+        taus = [p[K.P_TAU_ACC], p[K.P_REST_TAU], max(p[K.P_MAG_CUR_TAU], K.TAU_FLOOR)]
         self.register_buffer("taus", torch.tensor(taus, dtype=F64))
         self.register_buffer("thru_row", torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0], dtype=F64))
         self.register_buffer("gain_taus", torch.tensor([p[K.P_TAU_MAG], p[K.P_MAG_REF_TAU]], dtype=F64))
@@ -249,7 +249,7 @@ class BackboneGraph(nn.Module):
         else:
             gap = self.false
         gapf = gap.to(F64)
-        ts_typ = torch.where(ts_typ > 0.0, ts_typ + 0.1 * (dt - ts_typ), dt)
+        ts_typ = torch.where(ts_typ > 0.0, ts_typ + K.TS_TYP_RATE * (dt - ts_typ), dt)
         prev_g = s[K.S_GPREV:K.S_GPREV + 3]
         frozen, clipped = self.health(s, torch.stack([gyro, acc]), dt, w)
         frozen_g, frozen_a = frozen[0], frozen[1]
@@ -300,7 +300,7 @@ class BackboneGraph(nn.Module):
         sh = torch.sqrt(v0 * v0 + v1 * v1 + 1e-300)
         half = acc_trust * self.T.atan2(sh, v2) / 2.0
         sin_h = torch.sin(half)
-        tilted = sh > 1e-12
+        tilted = sh > K.TILT_MIN
         kk = sin_h / torch.where(tilted, sh, 1.0)
         upside = torch.where(v2 < 0.0, sin_h, 0.0)
         axis = torch.where(tilted, torch.stack([kk * v1, -kk * v0]), torch.stack([upside, torch.zeros_like(upside)]))

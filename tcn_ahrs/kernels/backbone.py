@@ -38,7 +38,7 @@ from .backbone_layout import (  # noqa: F401 (the layout, read by the step as co
     C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V, C_WM, C_WV, C_WR, DEG, EPS, initial_state, S_GPREV, S_GSAME_T, S_GSAME_N,
     S_GFROZEN, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES, S_GMAX, S_GCLIPPED, S_AMAX,
     S_ACLIPPED, P_GCLIP_FLOOR, P_ACLIP_FLOOR, CLIP_MIN_REPEATS, S_TS_TYP, S_GAP, P_GAP_F, S_HEAD_RESTART, S_ADISTRUST,
-    S_MPREV, S_MSAME_T, S_MFROZEN, MAG_FROZEN_MIN_T)
+    S_MPREV, S_MSAME_T, S_MFROZEN, MAG_FROZEN_MIN_T, TS_TYP_RATE, TILT_MIN, TAU_FLOOR)
 from . import backbone_gains as _gains_float
 from . import quat as _quat
 from .ops import float_ops, load_kernel
@@ -76,7 +76,7 @@ def coefficients(p, ts, c):
     c[C_TS] = ts
     butter(c, C_ACC_B, C_ACC_A, p[P_TAU_ACC], ts)
     butter(c, C_REST_B, C_REST_A, p[P_REST_TAU], ts)
-    butter(c, C_MAG_B, C_MAG_A, fmax(p[P_MAG_CUR_TAU], 1e-9), ts)
+    butter(c, C_MAG_B, C_MAG_A, fmax(p[P_MAG_CUR_TAU], TAU_FLOOR), ts)
     c[C_KMAG] = first_order_gain(p[P_TAU_MAG], ts)
     c[C_KMAGREF] = first_order_gain(p[P_MAG_REF_TAU], ts)
     p0, v, wm, wv, wr = bias_noise(p[P_SIGMA_INIT], p[P_FORGET], p[P_SIGMA_MOTION], p[P_VERT_FORGET],
@@ -189,7 +189,7 @@ def gyro_update(s, p, c, gx, gy, gz):
     # it is the mean of the readings either side (what resampling onto the grid gives), not the
     # last reading over the whole gap; the low-pass filters hold over it (lp)
     gap = both(p[P_GAP_F] > 0.0, both(s[S_TS_TYP] > 0.0, ts > p[P_GAP_F] * s[S_TS_TYP]))
-    s[S_TS_TYP] = where(s[S_TS_TYP] > 0.0, s[S_TS_TYP] + 0.1 * (ts - s[S_TS_TYP]), ts + 0.0 * gx)
+    s[S_TS_TYP] = where(s[S_TS_TYP] > 0.0, s[S_TS_TYP] + TS_TYP_RATE * (ts - s[S_TS_TYP]), ts + 0.0 * gx)
     s[S_GAP] = where(gap, 1.0 + 0.0 * gx, 0.0 * gx)
     p0, p1, p2, was_frozen = s[S_GPREV], s[S_GPREV + 1], s[S_GPREV + 2], s[S_GFROZEN] > 0.5  # before the check
     # a frozen gyro is not integrated (the attitude holds) and is not rest (no bias from it)
@@ -262,7 +262,7 @@ def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
     # (trust 1: VQF's full correction of the low-passed direction)
     sh = sqrt(v0 * v0 + v1 * v1 + 1e-300)
     half = acc_trust * atan2(sh, v2) / 2.0
-    tilted = sh > 1e-12
+    tilted = sh > TILT_MIN
     k = sin(half) / where(tilted, sh, 1.0 + 0.0 * sh)
     cx = where(tilted, k * v1, where(v2 < 0.0, sin(half), 0.0 * sh))  # upside down: about x
     cy = where(tilted, -k * v0, 0.0 * sh)

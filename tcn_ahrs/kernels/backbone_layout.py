@@ -158,6 +158,9 @@ C_KMAG, C_KMAGREF, C_P0, C_V, C_WM, C_WV, C_WR = (_C["k_mag"], _C["k_mag_ref"], 
                                                   _C["bias_motion_w"], _C["bias_vertical_w"], _C["bias_rest_w"])
 DEG = math.pi / 180.0
 EPS = 2.220446049250313e-16  # float64 machine epsilon: VQF's threshold for a zero rotation rate
+TS_TYP_RATE = 0.1   # the typical step's running mean: its weight per step (a gap is a step far beyond it)
+TILT_MIN = 1e-12    # |v_xy| below this: the accelerometer's direction is (anti)parallel to up, no axis to turn about
+TAU_FLOOR = 1e-9    # s: a low-pass time constant of 0 (switched off) still gives finite coefficients
 
 
 def initial_state(params: BackboneParams) -> List[float]:
