@@ -23,7 +23,9 @@ def test_quick_run_fields_and_files(tmp_path):
            "speed": {"train": {"window": 64, "steps": 1, "warmup": 0},
                      "inference": {"samples": 200, "repeats": 1, "warmup": 0},
                      "streaming": {"samples": 20, "warmup": 2, "chunk": 5},
-                     "filters": {"samples": 50, "batches": [1, 3], "peers": ["vqf", "imufusion"]}}}
+                     "filters": {"samples": 50, "batches": [1, 3], "peers": ["vqf", "imufusion"]},
+                     # one more model's C loop (the deploy section's own test runs the others)
+                     "deploy": {"c_models": ["checkpoints/tumvi6_ecf.json"]}}}
     res = bench.main(cfg)
     env = res["environment"]
     for k in ("torch", "numpy", "cpu", "cpu_count", "torch_threads", "device", "gpu", "loadavg_start"):
