@@ -147,3 +147,22 @@ def test_shipped_models_by_new_and_old_name(capsys):
     assert 'ckpt=general9 is now ckpt=general9_residual (README, "Renamed")' in out
     with pytest.raises(FileNotFoundError, match="shipped: broad6_residual"):
         shipped("nope")
+
+
+def test_every_shipped_file_a_config_names_exists():
+    """A config naming ``checkpoints/<file>`` (experiment=finetune's ``init``) names a shipped file
+    (the renames left ``general${data.axes}.ckpt`` pointing nowhere), and from a wheel it resolves."""
+    import re
+
+    from tcn_ahrs.checkpoints import SHIPPED_DIR
+    from tcn_ahrs.conf import CONF_DIR
+    from tcn_ahrs.evaluate.main import shipped
+
+    named = set()
+    for f in CONF_DIR.rglob("*.yaml"):
+        for m in re.findall(r"checkpoints/[\w${}.]+\.(?:ckpt|json)", f.read_text()):
+            named |= {m.replace("${data.axes}", a) for a in ("6", "9")}
+    assert "checkpoints/general9_residual.ckpt" in named
+    for path in sorted(named):
+        assert (REPO / path).is_file(), path
+        assert shipped(str(Path("/nonexistent") / path)) == str(SHIPPED_DIR / Path(path).name), path

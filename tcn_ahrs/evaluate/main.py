@@ -99,8 +99,9 @@ def default(axes: int, name: str = DEFAULT_NAME):
 
 def shipped(ckpt: str) -> str:
     """``ckpt`` as given, or a shipped model named without folder and suffix (``general9_residual``,
-    ``euroc6_closed_loop``, ``tumvi6_ecf``): ``<name>.ckpt`` or ``.json`` of the installed package
-    (:data:`tcn_ahrs.checkpoints.SHIPPED_DIR`, the checkout's ``checkpoints/``). An old name
+    ``euroc6_closed_loop``, ``tumvi6_ecf``) or ``checkpoints/<file>`` where there is no such file:
+    ``<name>.ckpt`` or ``.json`` of the installed package (:data:`tcn_ahrs.checkpoints.SHIPPED_DIR`,
+    the checkout's ``checkpoints/``). An old name
     (``general9``, ``checkpoints/broad9.ckpt``: :data:`tcn_ahrs.config.renamed.CHECKPOINTS`) runs the
     renamed file and says so."""
     from ..checkpoints import SHIPPED_DIR
@@ -113,6 +114,8 @@ def shipped(ckpt: str) -> str:
         new = CHECKPOINTS[path.stem]
         print(f"note: ckpt={ckpt} is now ckpt={new} (README, \"Renamed\")")
         ckpt, path = new, Path(new)
+    if path.parent.name == "checkpoints" and (SHIPPED_DIR / path.name).is_file():
+        return str(SHIPPED_DIR / path.name)   # checkpoints/<file> outside a checkout: the installed one
     if "/" in ckpt or path.suffix:
         return ckpt
     for suffix in (".ckpt", ".json"):

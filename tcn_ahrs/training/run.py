@@ -110,10 +110,10 @@ def _model_config(cfg: DictConfig, axes: int):
     # fine-tuning: the architecture, knobs and weights are the checkpoint's; the model group is not used
     from ..checkpoint import model_from_checkpoint
 
-    shipped = Path(__file__).resolve().parents[1] / str(cfg.init)
-    if not Path(str(cfg.init)).is_file() and shipped.is_file():  # checkpoints/... from anywhere
-        with open_dict(cfg):
-            cfg.init = str(shipped)
+    from ..evaluate.main import shipped
+
+    with open_dict(cfg):   # checkpoints/<name>.ckpt or <name>: the shipped model, from anywhere (an old name said)
+        cfg.init = shipped(str(cfg.init))
     init_model = model_from_checkpoint(str(cfg.init))
     check_layout(load_checkpoint(str(cfg.init)), axes, str(cfg.init))
     model_cfg = dict(checkpoint_meta(load_checkpoint(str(cfg.init)), str(cfg.init))["model"])
