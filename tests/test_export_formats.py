@@ -25,6 +25,8 @@ from tcn_ahrs.export.backbone import ResidualStreaming  # noqa: E402
 from tcn_ahrs.export.onnx_step import OnnxBatch, OnnxStreaming, export_onnx, read_onnx_metadata  # noqa: E402
 from tcn_ahrs.export.program import ExportedBatch, ExportedStreaming, export_program, read_program_metadata  # noqa: E402
 
+from conftest import built_once  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 CKPTS = ROOT / "checkpoints"
 ANGLE, OMEGA = 1e-5, 1e-6
@@ -54,9 +56,10 @@ def imu_of(seq, axes):
 def exported(request, tmp_path_factory):
     name = request.param
     ckpt = CKPTS / f"{name}_residual.ckpt"
-    out = tmp_path_factory.mktemp(name)
-    onnx_files = export_onnx(ckpt, out / f"{name}.onnx")
-    pt2_files = export_program(ckpt, out / f"{name}.pt2")
+    # the exports once per session (both workers' tests read them)
+    _, files = built_once(tmp_path_factory, f"export_{name}", lambda out: {
+        "onnx": export_onnx(ckpt, out / f"{name}.onnx"), "pt2": export_program(ckpt, out / f"{name}.pt2")})
+    onnx_files, pt2_files = files["onnx"], files["pt2"]
     from tcn_ahrs.checkpoint import checkpoint_meta, load_checkpoint
 
     model, meta = checkpoint_export_meta(ckpt, checkpoint_meta(load_checkpoint(ckpt), ckpt))
