@@ -150,7 +150,9 @@ def run_case(name: str, code: Optional[Path], work: Path, root: Path = SHARED) -
     data = work / "data" / f"case{list(CASES).index(name):02d}"
     _write(data / f"{CLIPS[clip][:2]}_clip.h5", a)
     out = work / "out" / data.name
-    ckpt_path = Path(__file__).resolve().parents[2] / "checkpoints" / f"{ckpt}.ckpt"
+    from ..checkpoints import SHIPPED_DIR
+
+    ckpt_path = SHIPPED_DIR / f"{ckpt}.ckpt"   # the shipped model (a --code checkout before runs the same file)
     cmd = [sys.executable, "-m", "tcn_ahrs", "evaluate", "data=generic", f"data.root={data}", f"ckpt={ckpt_path}",
            "data.split=all", "baselines=[vqf]", f"out={out}", "plots=false", *extra]
     env = dict(os.environ)
