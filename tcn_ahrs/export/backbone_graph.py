@@ -71,6 +71,7 @@ class BackboneGraph(nn.Module):
         self.G = load_kernel(backbone_gains, ops)
         self.noise = (p[K.P_SIGMA_INIT], p[K.P_FORGET], p[K.P_SIGMA_MOTION], p[K.P_VERT_FORGET], p[K.P_SIGMA_REST])
         self.p0 = float(backbone_gains.bias_noise(*self.noise, 1.0)[0])   # P0: the same at every step
+        self.register_buffer("p_diag", torch.tensor([K.S_P, K.S_P + 4, K.S_P + 8]))   # the bias variances
         self.rest_bias = p[K.P_REST_BIAS] > 0.5
         self.mag_rej = p[K.P_MAG_REJ] > 0.5
         self.motion = p[K.P_MOTION_BIAS] > 0.5
@@ -279,8 +280,10 @@ class BackboneGraph(nn.Module):
         gq = torch.where(turn, q / torch.sqrt((q * q).sum()), gq)
         w.add(list(range(K.S_GQ, K.S_GQ + 4)), gq)
         # ---- accelerometer (kernel: acc_update)
-        wait_a = s[K.S_ADISTRUST]   # not trusted for tau_acc after a clipped sample (kernel: acc_update)
-        wait_a = torch.where(clipped[1], p[K.P_TAU_ACC], torch.where(wait_a > 0.0, wait_a - dt, wait_a))
+        # not trusted for tau_acc after a clipped sample while the gyro bias is known (kernel: acc_update)
+        known = s[self.p_diag].max() <= K.CLIP_BRIDGE_VAR * self.p0
+        wait_a = s[K.S_ADISTRUST]
+        wait_a = torch.where(clipped[1] & known, p[K.P_TAU_ACC], torch.where(wait_a > 0.0, wait_a - dt, wait_a))
         w.add([K.S_ADISTRUST], wait_a.reshape(1))
         distrust = frozen_a | clipped[1] | (wait_a > 0.0)
         acc_trust = torch.where(distrust, 0.0, acc_trust)

@@ -147,6 +147,10 @@ S_MPREV, S_MSAME_T, S_MFROZEN = _S["mag_prev"], _S["mag_same_time"], _S["mag_fro
 MAG_FROZEN_MIN_T = 0.5  # s: a magnetometer repeats its readings exactly this long, at least, to be frozen
 # (slower than the IMU, a magnetometer's readings are held: a 10 Hz one in a 100 Hz stream repeats for 0.1 s;
 # the longest exact repeat in BROAD and OxIOD is 8 samples, 28 ms)
+CLIP_BRIDGE_VAR = 0.25  # a clipped accelerometer is bridged by the gyro alone (tau_acc after each clipped
+# sample) only while every axis's bias variance is below this fraction of its initial one (σ below half
+# of bias_sigma_init: after rest, or motion updates); 0.05-0.25 give the same on every clipped recording
+# the project has (kernels/backbone.py: acc_update)
 CLIP_MIN_REPEATS = 4.0  # an axis at its extreme this many times in a row (a smooth, quantised peak
 # repeats its value once or twice: BROAD's gyro did at 2.9 rad/s)
 FROZEN_MIN_SAMPLES = 10.0  # and at least this many repeated samples (a slow IMU's 0.1 s is few)
