@@ -55,6 +55,10 @@ Blocks (:data:`BLOCKS`):
     ``python -m tcn_ahrs.bench.fault_trial B --code CHECKOUT_OF_1d5b769``, then ``python -m
     tcn_ahrs.bench.fault_trial N --before B/fault_trial.json`` → ``N/fault_trial.json``, copied to
     ``docs/results/json/fault_trial.json``, rendered by :func:`tcn_ahrs.bench.fault_trial.markdown`.
+``devices`` (docs/results.md)
+    The gate on every real recording, ``tcn-ahrs benchmark devices`` → ``runs/benchmark/devices/devices.json``,
+    copied to ``docs/results/json/devices.json``, rendered by :func:`tcn_ahrs.experiments.devices.markdown`
+    (the default's recordings worse than VQF listed).
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -74,6 +78,7 @@ if str(REPO) not in sys.path:  # this checkout's package, not another installed 
     sys.path.insert(0, str(REPO))
 
 from tcn_ahrs.experiments import lodo as _lodo  # noqa: E402
+from tcn_ahrs.experiments import devices as _devices  # noqa: E402
 from tcn_ahrs.experiments import finetune as _finetune  # noqa: E402
 from tcn_ahrs.experiments import transfer as _transfer  # noqa: E402
 from tcn_ahrs.bench import fault_trial as _fault_trial  # noqa: E402
@@ -264,6 +269,8 @@ BLOCKS: Dict[str, Block] = {
     "finetune_crossfit": Block("docs/results/json/finetune_crossfit.json", lambda result: _finetune.markdown(result),
                                ("docs/results.md",)),
     "rates": Block("docs/results/json/rates.json", lambda result: _transfer.rates_markdown(result), ("docs/results.md",)),
+    "devices": Block("docs/results/json/devices.json", lambda result: _devices.markdown(result, listed=("default",)),
+                     ("docs/results.md",)),
     "fault_trial": Block("docs/results/json/fault_trial.json", lambda result: _fault_trial.markdown(result),
                          ("docs/troubleshooting.md",)),
 }

@@ -39,7 +39,7 @@ COMMANDS: Dict[str, Command] = {
     "compare": Command("compare", "tcn_ahrs.experiments.compare:compare_main",
                        "every classical filter (and a checkpoint) on one dataset"),
     "benchmark": Command("benchmark", "tcn_ahrs.cli:benchmark_main",
-                         "accuracy | speed | transfer | lodo | finetune | faults"),
+                         "accuracy | speed | transfer | lodo | finetune | faults | devices"),
     "crossval": Command("crossval", "tcn_ahrs.experiments.crossval:crossval_main",
                         "nested leave-recordings-out folds of a recipe"),
     "search": Command("search", "tcn_ahrs.experiments.search:search_main",
@@ -59,6 +59,7 @@ BENCHMARK_MODES = {
     "finetune": "tcn_ahrs.experiments.finetune:finetune_main",
     "speed": "tcn_ahrs.bench:main",
     "faults": "tcn_ahrs.bench.faults:faults_main",
+    "devices": "tcn_ahrs.experiments.devices:devices_main",
 }
 
 

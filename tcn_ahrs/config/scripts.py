@@ -102,9 +102,17 @@ class FaultsSection:
 
 
 @dataclass
+class DevicesSection:
+    """benchmark ``devices:`` (tcn_ahrs.experiments.devices)."""
+    datasets: Optional[List[str]] = None   # conf/data names; null: every real dataset
+    models: Optional[List[str]] = None     # shipped model names; null: every shipped model
+    quick: bool = False                    # the quick subset (the README's test command)
+
+
+@dataclass
 class BenchmarkConfig(CompareConfig):
     """conf/benchmark.yaml: compare.yaml's keys + the modes' own (``speed:``: :mod:`.speed`)."""
-    mode: str = "accuracy"           # accuracy | speed | transfer | lodo | finetune | faults
+    mode: str = "accuracy"           # accuracy | speed | transfer | lodo | finetune | faults | devices
     peers: bool = True
     ckpt: Optional[str] = None       # a learned checkpoint, column ckpt_label
     ckpt_label: str = "Proposed"
@@ -112,6 +120,7 @@ class BenchmarkConfig(CompareConfig):
     lodo: LodoSection = field(default_factory=LodoSection)
     finetune: FinetuneSection = field(default_factory=FinetuneSection)
     faults: FaultsSection = field(default_factory=FaultsSection)
+    devices: DevicesSection = field(default_factory=DevicesSection)
     quick: bool = False              # speed mode only
     speed: Dict[str, Any] = field(default_factory=dict)  # checked by tcn_ahrs.bench.resolve_config
 

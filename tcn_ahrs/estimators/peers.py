@@ -307,15 +307,21 @@ class VQFEstimator(Peer):
             if init_quat is not None:
                 # started at the given attitude like every other estimator (the yardstick,
                 # tcn_ahrs.metrics): VQF's 6D attitude is accQuat ⊗ gyrQuat (its frame: z up,
-                # ENU here); its 9D heading still snaps to the magnetometer at the first sample
+                # ENU here); 9-axis, in the magnetic frame of the start (:meth:`_initial`, as the
+                # project filters and the other peers: the same start for every method; started in
+                # the caller's frame instead, its heading snapped to the field and differed from the
+                # backbone's by up to 0.9° on the iPhones)
+                q_start, m_from_nav = self._initial(seq, init_quat, mag)
                 state = filt.state
-                state["gyrQuat"] = np.asarray(init_quat, dtype=np.float64).reshape(4) / np.linalg.norm(init_quat)
+                state["gyrQuat"] = np.asarray(q_start, dtype=np.float64).reshape(4)
                 state["accQuat"] = np.array([1.0, 0.0, 0.0, 0.0])
                 filt.state = state
             out = filt.updateBatch(gyr, acc, mag)
         key = "quat9D" if self.axes == 9 else "quat6D"
         # VQF 9D reference frame: z up, magnetic north +y (heading from atan2(m_x, m_y)) = ENU.
         quat = to_enu(out[key], "ENU")
+        if init_quat is not None and not self.offline:
+            quat = self._to_caller_frame(quat, m_from_nav)
         signals = {"gyro_bias": np.asarray(out["bias"], dtype=np.float64),
                    "rest": np.asarray(out["restDetected"], dtype=bool)}
         if self.axes == 9:

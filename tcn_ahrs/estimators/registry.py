@@ -17,6 +17,8 @@ kind           what ``build(name, axes, **params)`` returns
 ``peer``       a PyPI peer wrapper (:mod:`tcn_ahrs.estimators.peers`; raises
                :class:`~tcn_ahrs.estimators.peers.PeerUnavailable` when its library is missing)
 ``learned``    a checkpoint (:class:`~tcn_ahrs.estimators.learned.LearnedEstimator`, ``ckpt=``)
+``recorded``   an attitude the device recorded beside the IMU (:mod:`tcn_ahrs.estimators.recorded`:
+               the phone OS's own, ``phone_os``), read from the recording's file
 =============  ==================================================================================
 
 Column names: ``<method><axes>d`` (``ecf9d`` uses the magnetometer, ``ecf6d`` does not),
@@ -34,7 +36,7 @@ import warnings
 from dataclasses import dataclass
 from typing import Any, Callable, Dict, List, Mapping, Optional, Sequence, Tuple
 
-KINDS = ("raw", "classical", "peer", "learned")
+KINDS = ("raw", "classical", "peer", "learned", "recorded")
 
 
 @dataclass(frozen=True)
