@@ -352,3 +352,13 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     meta = {"dataset": dataset, "declared": {k: attrs[k] for k in ATTR_KEYS if k in attrs}, "clock": clock_note}
     return ImuSequence(name=name, source=src, time=t, gyro=gyro, accel=acc, mag=mag, quat=quat,
                        quat_valid=valid, score_mask=score, rate=rate, meta=meta)
+
+
+def device_loader(dataset: str):
+    """``load_recording`` for a device whose recordings are in the generic format under a name of
+    its own (``data=iphone5``): the generic loader, the recordings named as that dataset."""
+    def load(root, name: str) -> ImuSequence:
+        seq = load_recording(root, name)
+        seq.meta["dataset"] = dataset
+        return seq
+    return load
