@@ -80,9 +80,17 @@ def rest_windows(gyro: np.ndarray, acc: np.ndarray, rate: float, cfg: DeviceChec
     g = gyro[:m * n].reshape(m, n, 3)
     a = acc[:m * n].reshape(m, n, 3)
     g_spread, a_spread = g.std(1).max(1), a.std(1).max(1)
-    g_floor = float(np.percentile(g_spread, cfg.floor_percentile))
-    a_floor = float(np.percentile(a_spread, cfg.floor_percentile))
-    quiet = (g_spread <= cfg.noise_factor * g_floor) & (a_spread <= cfg.noise_factor * a_floor)
+    # a frozen sensor (most of a window's readings repeating the previous one exactly) is not rest: its
+    # zero spread would set the noise floor and pass for stillness while the other sensor turns (a
+    # BROAD clip with the accelerometer frozen 5 s: a "gyro bias" of -111, -78, +50 °/s was subtracted
+    # from the whole recording); real noise makes exact repeats rare
+    frozen = np.zeros(m, bool)
+    for x in (g, a):
+        frozen |= (np.diff(x, axis=1) == 0).all(2).mean(1) > 0.5
+    live = ~frozen if (~frozen).any() else np.ones(m, bool)
+    g_floor = float(np.percentile(g_spread[live], cfg.floor_percentile))
+    a_floor = float(np.percentile(a_spread[live], cfg.floor_percentile))
+    quiet = (g_spread <= cfg.noise_factor * g_floor) & (a_spread <= cfg.noise_factor * a_floor) & ~frozen
     up = a.mean(1)
     up = up / np.maximum(np.linalg.norm(up, axis=1, keepdims=True), 1e-12)
     rest = np.zeros(m, bool)

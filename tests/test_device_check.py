@@ -137,3 +137,33 @@ def test_evaluate_checks_the_device_for_a_model_trained_on_checked_recordings(tm
           "data.axes=6", "data.split=all", f"out={out}", f"hydra.run.dir={out}", "plots=false", "trajectories=false",
           "baselines=[]"])
     assert ("device check, biased: rests" in capsys.readouterr().out) == flagged
+
+
+_BROAD = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "broad"
+
+
+@pytest.mark.skipif(not _BROAD.is_dir(), reason="BROAD not in ../shared")
+@pytest.mark.parametrize("kind", ["slow", "fast"])
+def test_a_frozen_accelerometer_is_not_rest_for_the_device_check(kind):
+    """A BROAD clip with the accelerometer frozen 5 s while it turns (issue 55's fault trial, where the
+    freeze was read as rest: a "gyro bias" of (-111, -78, +50) °/s subtracted, AAE 125.7 against 1.15).
+    On these clips the frozen windows' zero spread became the accelerometer's noise floor, so the real
+    rest no longer passed and no bias was found at all. Now frozen windows are neither rest nor the
+    floor: the bias is the clean recording's and the default stays within twice its clean error."""
+    from tcn_ahrs.bench import fault_trial as ft
+    from tcn_ahrs.device_check import check, checked
+    from tcn_ahrs.estimators.families import recording_scores
+    from tcn_ahrs.evaluate.main import default
+    from tcn_ahrs.sequence import ImuSequence
+
+    def seq(a):
+        return ImuSequence("clip", "clip", a["t"], a["gyr"], a["acc"], a["mag"], a["quat"], check_units=False,
+                           meta={"heading_reference": "magnetic_north"})
+
+    clean = ft._clip(_BROAD, ft.CLIPS[kind])
+    frozen = ft._frozen("acc")({k: v.copy() for k, v in clean.items()})
+    b_clean, b_frozen = check(seq(clean)).gyro_bias, check(seq(frozen)).gyro_bias
+    assert b_clean is not None and b_frozen is not None
+    assert np.degrees(np.abs(b_frozen - b_clean)).max() < 0.05, (np.degrees(b_clean), np.degrees(b_frozen))
+    e_clean, e_frozen = (recording_scores(default(9), checked([seq(a)]), 9)[0][0] for a in (clean, frozen))
+    assert e_frozen <= 2.0 * e_clean, (e_frozen, e_clean)
