@@ -18,7 +18,8 @@ CONF = CONF_DIR
 def test_cell_recordings():
     assert cell_recordings({"name": "broad", "test": ["05"]}, own=True) == "test"
     assert cell_recordings({"name": "euroc", "test": []}, own=True) is None
-    assert cell_recordings({"name": "euroc", "test": ["MH_02"]}, own=False) == "trainval"
+    assert cell_recordings({"name": "euroc", "train": ["MH_01"], "test": ["MH_02"]}, own=False) == "trainval"
+    assert cell_recordings({"name": "iphone4s", "train": [], "test": ["a"]}, own=False) == "test"  # all test
     assert cell_recordings({"name": "simulated"}, own=True) == "test"
 
 

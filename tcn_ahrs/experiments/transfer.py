@@ -3,7 +3,8 @@ saw, beside the backbone and the classical filters on the same recordings
 (``python scripts/benchmark.py transfer``).
 
 Which recordings a cell holds: on another dataset, all of that dataset's training recordings,
-whole (``trainval``: none was seen by the checkpoint); on the checkpoint's own dataset, its
+whole (``trainval``: none was seen by the checkpoint; its test recordings where it lists no
+training ones); on the checkpoint's own dataset, its
 visible test recordings (``test``) when ``../shared`` has any, else the cell is left out (the
 checkpoint saw those recordings: its own folds are the crossval tables); on the simulator, its
 test split. A 6-axis checkpoint reads every dataset (without the magnetometer), a 9-axis one only
@@ -27,7 +28,7 @@ from ..estimators import registry
 from ..estimators.families import is_estimator_file, load_estimator, read_estimator
 from ..evaluate.runner import evaluate, jsonable
 
-DATASETS = ("broad", "euroc", "tumvi", "oxiod", "simulated")
+DATASETS = ("broad", "euroc", "tumvi", "oxiod", "iphone5", "iphone4s", "simulated")
 BASELINES = ("raw", "backbone", "vqf", "ecf", "mahony", "madgwick")
 METRICS = ("aae_deg", "inclination_deg")
 
@@ -50,7 +51,8 @@ def cell_recordings(data_cfg: Mapping, own: bool) -> Optional[str]:
         return "test"
     if own:
         return "test" if list(data_cfg.get("test") or []) else None
-    return "trainval"
+    # a device whose every recording is a test recording (the iPhone 4S: one user) is read there
+    return "trainval" if list(data_cfg.get("train") or []) else "test"
 
 
 def own_datasets(data_name: str) -> List[str]:
