@@ -342,7 +342,10 @@ class ImuSequence:
         if limit is not None and a.size and float(np.max(np.abs(a))) > limit:
             i, k = (int(v) for v in np.argwhere(np.abs(a) > limit)[0])
             unit = {"gyro": "rad/s", "accel": "m/s^2", "mag": "uT"}[name]
-            many = float(np.mean(np.abs(a) > limit)) > 0.01
+            # a spike is one sample beyond the range with its neighbours within it; readings that rise to it
+            # and fall back (a phone's deg/s gyro in motion: under 1 % of samples beyond 50) are a unit
+            near = np.abs(np.delete(a[max(0, i - 2):i + 3, k], min(i, 2)))
+            many = float(np.mean(np.abs(a) > limit)) > 0.01 or bool(near.size and near.max() > 0.25 * limit)
             why = ({"gyro": "is it in deg/s? declare gyr_unit: deg/s (or convert with conventions.deg_to_rad)",
                     "accel": "check its unit (m/s^2 expected)",
                     "mag": "is it in nT? convert with conventions.nt_to_ut"}[name] if many

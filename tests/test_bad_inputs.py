@@ -780,3 +780,18 @@ def test_a_9_axis_checkpoint_on_data_without_magnetometer_gets_advice_that_can_w
     # a 9-axis dataset read as 6 axes: data.axes=9 does work there, and is what it says
     with pytest.raises(CheckpointError, match="data.axes=9"):
         check_layout(ck, 6, "broad9_residual.ckpt", data_axes=dataset_axes("broad"))
+
+
+_PHONES = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "phones"
+
+
+@pytest.mark.skipif(not (_PHONES / "iphone4s").is_dir(), reason="phones not in ../shared")
+def test_a_phone_gyro_in_deg_per_s_in_motion_is_named_a_unit_not_a_spike():
+    """Issue 55: a phone's gyro in deg/s while it moves exceeds the range on under 1 % of its samples and
+    was called "a spike: drop or interpolate that sample"; the fix is the unit."""
+    from tcn_ahrs.datasets import generic
+    from tcn_ahrs.sequence import DataError, ImuSequence
+
+    s = generic.load_file(_PHONES / "iphone4s" / "Guillaume_iPhone4S_Dist_Phoning.h5")
+    with pytest.raises(DataError, match=r"field 'gyro'.*is it in deg/s\? declare gyr_unit: deg/s"):
+        ImuSequence(s.name, s.source, s.time, np.degrees(s.gyro), s.accel, s.mag, s.quat)
