@@ -342,14 +342,11 @@ class ImuSequence:
         if limit is not None and a.size and float(np.max(np.abs(a))) > limit:
             i, k = (int(v) for v in np.argwhere(np.abs(a) > limit)[0])
             unit = {"gyro": "rad/s", "accel": "m/s^2", "mag": "uT"}[name]
-            # a spike is one sample beyond the range with its neighbours within it; readings that rise to it
-            # and fall back (a phone's deg/s gyro in motion: under 1 % of samples beyond 50) are a unit
-            near = np.abs(np.delete(a[max(0, i - 2):i + 3, k], min(i, 2)))
-            many = float(np.mean(np.abs(a) > limit)) > 0.01 or bool(near.size and near.max() > 0.25 * limit)
+            many = float(np.mean(np.abs(a) > limit)) > 0.01 or (np.abs(a[max(0, i - 2):i + 3, k]) > limit / 4).sum() > 1
             why = ({"gyro": "is it in deg/s? declare gyr_unit: deg/s (or convert with conventions.deg_to_rad)",
                     "accel": "check its unit (m/s^2 expected)",
                     "mag": "is it in nT? convert with conventions.nt_to_ut"}[name] if many
-                   else "a spike: drop or interpolate that sample")
+                   else "a spike: drop or interpolate that sample")  # its neighbours well within the range
             self._fail(name, f"sample {i}, axis {'xyz'[k]}: {a[i, k]:.4g} {unit} is beyond any sensor's range "
                              f"(|value| <= {limit:g} {unit}, conventions.INPUT_RANGES): {why}")
         return a

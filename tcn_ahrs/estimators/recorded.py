@@ -9,13 +9,12 @@ from typing import Optional
 
 import h5py
 import numpy as np
+import torch
 
 from .. import so3
 from ..sequence import ImuSequence
 from .base import EstimatorOutput
 from .registry import register
-
-import torch
 
 # iOS's reference frame xMagneticNorthZVertical (x magnetic north, y west, z up) -> ENU: a +90°
 # turn about up (the phones' README; loadiOSDataset.m)

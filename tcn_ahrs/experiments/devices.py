@@ -49,17 +49,23 @@ def _recordings(data_cfg: Mapping, names: Optional[Sequence[str]] = None):
     return checked(seqs), refused
 
 
+OS_FIELD = "os_quat"
+
+
 def _has_os(seqs) -> bool:
+    """Whether every recording's HDF5 file carries the phone OS's attitude."""
     import h5py
 
+    def has(s) -> bool:
+        if not str(s.source).endswith((".h5", ".hdf5")):
+            return False
+        with h5py.File(s.source, "r") as f:
+            return OS_FIELD in f
+
     try:
-        return bool(seqs) and all(str(s.source).endswith((".h5", ".hdf5")) and OS_FIELD in h5py.File(s.source, "r")
-                                  for s in seqs)
+        return bool(seqs) and all(has(s) for s in seqs)
     except OSError:
         return False
-
-
-OS_FIELD = "os_quat"
 
 
 def device_table(name: str, data_cfg: Mapping, models: Mapping[str, str], names: Optional[Sequence[str]] = None
