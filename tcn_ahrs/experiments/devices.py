@@ -4,9 +4,9 @@ best of them and the per-recording best (an oracle no filter has), and — on ph
 OS's own attitude, **recording by recording**, on every real recording the project has (BROAD,
 EuRoC, TUM VI, OxIOD, the iPhones: each dataset's recordings under ``../shared``, whole).
 
-* Same input for every method: each recording's device check (its gyro bias at rest, the field's
-  steadiness; :mod:`tcn_ahrs.device_check`), as ``tcn-ahrs evaluate``'s default gives it, applied
-  once and read by every column.
+* Same input for every method: each recording's device check (its gyro bias at rest subtracted;
+  :mod:`tcn_ahrs.device_check`), as ``tcn-ahrs evaluate``'s default gives it, applied once and read by
+  every column.
 * The gate: the default is never worse than VQF on any recording (:func:`tcn_ahrs.verdict.never_worse`:
   AAE and inclination, at the tables' 0.01°). A recording that fails it is listed with its margin.
 * A shipped model reads only the datasets whose axes it has (a 9-axis model needs a magnetometer);
@@ -99,8 +99,8 @@ def device_table(name: str, data_cfg: Mapping, models: Mapping[str, str], names:
         ests.append(vqf6)
     if axes == 9 and _has_os(seqs):
         ests.append(registry.build(OS, 9))
-    # the 6-axis view of a dataset read as 6-axis; a recording the device check found disturbed is
-    # already without its magnetometer (every column alike)
+    # the 6-axis view of a dataset read as 6-axis; otherwise every recording with its magnetometer
+    # (the device check only advises 6 axes on a disturbed field: every column alike)
     res = evaluate(ests, seqs, plots=False, trajectories=False, axes=axes if axes == 6 else None, dataset=name)
     rows: Dict[str, Dict[str, Dict[str, float]]] = {}
     for e in ests:
@@ -209,11 +209,11 @@ def devices_main(cfg) -> Dict[str, Any]:
     shipped = shipped_paths(_shipped_dir())
     wanted = d.get("models")
     models = shipped if wanted is None else {k: shipped[k] for k in wanted}
+    from ..datasets import resolve_root
+
     data_cfgs: Dict[str, Mapping] = {}
     for name in datasets:
         c = OmegaConf.to_container(OmegaConf.load(conf_path("data", f"{name}.yaml")), resolve=True)
-        from ..datasets import resolve_root
-
         try:
             c["root"] = str(resolve_root(c))
         except Exception as e:  # noqa: BLE001 - an absent dataset is said, the others run
