@@ -54,12 +54,21 @@ def _earlier_entries(folder: Path) -> List[str]:
     return sorted(p.name for p in folder.iterdir() if p.name != ".hydra" and p.suffix != ".log")
 
 
+def writable(folder: Path) -> bool:
+    """Whether this process can create files in ``folder`` (one place, so a test can say no)."""
+    return os.access(folder, os.W_OK | os.X_OK)
+
+
 def refuse_earlier_output(out, overwrite: bool = False, what: str = "output") -> Path:
-    """``out`` as a Path; ValueError if it is a file, or a folder holding an earlier run's files
-    and not ``overwrite`` (called before the work starts, and again by :func:`staged_output`)."""
+    """``out`` as a Path; ValueError if it is a file, a folder this process cannot write (a
+    read-only folder of the user's is never swapped for a writable one), or a folder holding an
+    earlier run's files and not ``overwrite`` (called before the work starts, and again by
+    :func:`staged_output`)."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"{what}: out={out} exists and is not a folder")
+    if out.is_dir() and not writable(out):
+        raise ValueError(f"{what}: out={out} is not writable (read-only): choose another out= or make it writable")
     if out.is_dir() and not overwrite:
         earlier = _earlier_entries(out)
         if earlier:

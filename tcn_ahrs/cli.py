@@ -16,8 +16,12 @@ import difflib
 import importlib
 import os
 import sys
-from typing import Callable, Dict, List, NamedTuple, Optional
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable, Dict, List, NamedTuple, Optional, Tuple
 
+from . import app as _app
 from .app import EXIT_USER_ERROR, check_overrides, quiet_third_party, user_errors
 from .conf import SEARCH_PATH
 from .config.renamed import experiment_overrides
@@ -101,6 +105,60 @@ def _usage_error(message: str) -> None:
     raise SystemExit(EXIT_USER_ERROR)
 
 
+OUT_ALIASES = {"train": "run_dir"}
+"""Commands whose output folder has another name: ``out=`` (as ``evaluate``, ``search``, ``export``
+take it) is accepted for it and said."""
+
+
+def _quoted(arg: str) -> Optional[str]:
+    """``key=value`` with the value quoted for Hydra's grammar when it does not parse as it is
+    (a path with non-ASCII letters or an apostrophe) and quoted does; else None."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    try:
+        parser.parse_override(arg)
+        return None
+    except Exception:  # noqa: BLE001 - Hydra's grammar errors
+        pass
+    key, value = arg.split("=", 1)
+    if not value or value[0] in "'\"[{":
+        return None
+    quoted = f"{key}='" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
+    try:
+        parser.parse_override(quoted)
+        return quoted
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def hydra_arguments(name: str, args: List[str]) -> Tuple[List[str], List[str]]:
+    """(``args`` as Hydra takes them, notes to print): ``out=`` as the command's own name for its
+    output folder; a value Hydra's grammar refuses unquoted (non-ASCII letters, an apostrophe)
+    quoted; and, in a working folder this process cannot write, Hydra's run folder (its log and
+    config, and the output of a command given no ``out=``) in the system's temporary folder instead
+    of ``./runs`` (Hydra would stop with a PermissionError before the command starts)."""
+    out, notes = [], []
+    for a in args:
+        key = a.split("=", 1)[0] if "=" in a and not a.startswith("-") else None
+        if key == "out" and name in OUT_ALIASES:
+            key = OUT_ALIASES[name]
+            a = f"{key}={a.split('=', 1)[1]}"
+            notes.append(f"{name}: out= is {OUT_ALIASES[name]}= (the {name} command's output folder)")
+        if key is not None:
+            q = _quoted(a)
+            if q is not None:
+                notes.append(f"{key}: the value quoted for Hydra ({q}); write it so to skip this note")
+                a = q
+        out.append(a)
+    if not any(a.startswith("hydra.run.dir=") for a in out) and not _app.writable(Path.cwd()):
+        run_dir = Path(tempfile.gettempdir()) / "tcn-ahrs" / name / time.strftime("%Y-%m-%d_%H-%M-%S")
+        out.append(f"hydra.run.dir='{run_dir}'")
+        notes.append(f"the working folder {Path.cwd()} is not writable: Hydra's run folder (log, config, and the "
+                     f"output where no out= is given) is {run_dir}")
+    return out, notes
+
+
 def main(argv: Optional[List[str]] = None) -> None:
     """Run ``argv`` (default: the process's arguments) = ``[COMMAND, overrides...]``."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -117,7 +175,8 @@ def main(argv: Optional[List[str]] = None) -> None:
     if name == "benchmark":
         args = mode_as_override(args)
     args, notes = experiment_overrides(args)   # an old experiment name runs its new one, said
-    for note in notes:
+    args, more = hydra_arguments(name, args)
+    for note in notes + more:
         print(note)
     check_overrides(command.config, args)
     target = command.target

@@ -166,3 +166,56 @@ def test_every_shipped_file_a_config_names_exists():
     for path in sorted(named):
         assert (REPO / path).is_file(), path
         assert shipped(str(Path("/nonexistent") / path)) == str(SHIPPED_DIR / Path(path).name), path
+
+
+def test_train_takes_out_as_its_run_dir_and_says_so(capsys):
+    """`tcn-ahrs train out=DIR`, as evaluate and search take it: train's folder is run_dir= (Hydra
+    said "Could not override 'out'")."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(["train", "out=/tmp/my_training", "data=nope"])   # stops at the bad data option, after the alias
+    assert e.value.code == 2
+    captured = capsys.readouterr()
+    assert "out= is run_dir=" in captured.out and "Could not override 'out'" not in captured.err
+    assert cli.hydra_arguments("train", ["out=/tmp/x"])[0] == ["run_dir=/tmp/x"]
+    assert cli.hydra_arguments("evaluate", ["out=/tmp/x"])[0] == ["out=/tmp/x"]
+
+
+def test_a_path_with_spaces_and_non_ascii_letters_works(capsys):
+    """Hydra's grammar refuses non-ASCII letters and apostrophes unquoted (LexerNoViableAltException);
+    the value is quoted for it and said; spaces alone parse as they are."""
+    path = "/tmp/Müller's runs/é"
+    cli.main(["evaluate", f"out={path}", "--cfg", "job"])   # prints the composed config
+    captured = capsys.readouterr().out
+    assert f"\nout: {path}\n" in captured and "quoted for Hydra" in captured, captured[-600:]
+    args, notes = cli.hydra_arguments("evaluate", ["out=/tmp/my runs", "baselines=[vqf, ecf]"])
+    assert args == ["out=/tmp/my runs", "baselines=[vqf, ecf]"] and not notes
+
+
+def test_a_read_only_working_folder_puts_hydras_run_folder_in_the_temporary_folder(tmp_path, monkeypatch, capsys):
+    """A working folder this process cannot write: Hydra's run folder (./runs/...) would stop the
+    command with PermissionError('runs'); it goes to the temporary folder, said, and the command runs."""
+    from tcn_ahrs import app
+
+    work = tmp_path / "read_only"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    monkeypatch.setattr(app, "writable", lambda folder: Path(folder).resolve() != work.resolve())
+    monkeypatch.setattr(sys, "argv", ["tcn-ahrs"])
+    cli.main(["inspect", "data=simulated", "data.split=test"])
+    out = capsys.readouterr().out
+    assert "is not writable: Hydra's run folder" in out
+    assert not (work / "runs").exists() and list(work.iterdir()) == []
+
+
+def test_an_existing_read_only_out_is_refused_not_replaced(tmp_path, monkeypatch):
+    """An empty out= folder the process cannot write was swapped for a new writable one without a
+    word: it is refused, named."""
+    from tcn_ahrs import app
+
+    out = tmp_path / "results"
+    out.mkdir()
+    monkeypatch.setattr(app, "writable", lambda folder: Path(folder) != out)
+    with pytest.raises(ValueError, match=r"out=.*results is not writable"):
+        with app.staged_output(out):
+            pass
+    assert out.is_dir() and list(out.iterdir()) == []

@@ -66,6 +66,7 @@ yardstick's unscored settling time covers its start).
 from __future__ import annotations
 
 import importlib
+from dataclasses import replace
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
@@ -238,6 +239,26 @@ def run_resampled(est, seq: ImuSequence, init_quat: Optional[np.ndarray], init_i
         elif v.shape[:1] == (len(grid),):
             signals[name] = v[nearest]
     return EstimatorOutput(quat=quat, signals=signals)
+
+
+class OnFixedPeriod:
+    """``est`` given the clock a fixed-period peer (VQF) integrates: on an irregular recording the
+    uniform grid of :func:`run_resampled`; on a regular one the nominal period 1 / rate for every
+    step (VQF's ``Ts``), not the recording's small jitter. The same input as VQF, sample for sample:
+    what a "never worse than VQF" comparison of filters needs (the phones' 5 ms steps jitter; on the
+    recording's own steps the backbone and VQF differ by up to 0.45° either way on iPhone 5
+    recordings, on VQF's clock by 0.002°)."""
+
+    def __init__(self, est, name: Optional[str] = None):
+        self.est, self.name = est, name or f"{est.name} (VQF's clock)"
+        self.axes = getattr(est, "axes", None)
+
+    def run(self, seq: ImuSequence, init_quat: Optional[np.ndarray] = None, init_index: int = 0) -> EstimatorOutput:
+        if not is_constant_period(seq):
+            return run_resampled(self.est, seq, init_quat, init_index)
+        nominal = replace(seq, time=seq.time[0] + np.arange(len(seq)) / float(seq.rate), check_units=False,
+                          meta=dict(seq.meta))
+        return self.est.run(nominal, init_quat, init_index)
 
 
 def constant_period(seq: ImuSequence, name: str, tol: float = 0.1) -> float:
