@@ -377,7 +377,7 @@ class ImuSequence:
             # no magnetometer behind the columns: a 6-axis recording (a 9-axis model refuses it)
             warnings.warn(f"{self.source}: field 'mag' reads 0 on every sample: no magnetometer; loaded as a "
                           "6-axis recording", UserWarning, stacklevel=3)
-            self.mag = None
+            self.mag, self.meta["mag_absent"] = None, "its field 'mag' reads 0 on every sample (a dead magnetometer)"
         if self.mag is not None:
             mag_norm = float(np.median(np.linalg.norm(self.mag, axis=1)))
             if mag_norm < 2.0:

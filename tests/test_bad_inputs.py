@@ -795,3 +795,25 @@ def test_a_phone_gyro_in_deg_per_s_in_motion_is_named_a_unit_not_a_spike():
     s = generic.load_file(_PHONES / "iphone4s" / "Guillaume_iPhone4S_Dist_Phoning.h5")
     with pytest.raises(DataError, match=r"field 'gyro'.*is it in deg/s\? declare gyr_unit: deg/s"):
         ImuSequence(s.name, s.source, s.time, np.degrees(s.gyro), s.accel, s.mag, s.quat)
+
+
+def test_an_all_zero_magnetometer_is_named_dead_when_a_9_axis_peer_refuses_it(tmp_path):
+    """The default's run with baselines=[vqf] on a recording whose magnetometer reads 0 everywhere
+    said only "needs a magnetometer; use the 6-axis variant": it now says the field read 0 (a dead
+    magnetometer) and which setting runs every method 6-axis."""
+    pytest.importorskip("vqf")
+    import warnings
+
+    import numpy as np
+
+    from tcn_ahrs.estimators import registry
+
+    def dead(c):
+        c["mag"][:] = 0.0
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        seq = _load(_recording(tmp_path, dead))
+    assert seq.mag is None
+    with pytest.raises(ValueError, match=r"field 'mag'.*reads 0 on every sample \(a dead magnetometer\).*data\.axes=6"):
+        registry.build("vqf", 9).run(seq, np.array([1.0, 0, 0, 0]), 0)

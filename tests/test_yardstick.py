@@ -91,6 +91,21 @@ def test_a_recording_shorter_than_the_settle_is_scored_whole_and_said():
     assert m.sum() == short.scored().sum()
 
 
+def test_evaluate_refuses_a_recording_too_short_to_score():
+    """A 2-sample recording was scored (AAE 5.4° for its first step) beside the others: evaluate
+    refuses it alone, and leaves it out of many with a warning naming it."""
+    from tcn_ahrs.estimators import registry
+
+    long = simulate("walking", 5.0, 100.0, seed=3, axes=6)
+    two = long.slice(0, 2, name="two_samples")
+    raw = registry.build("raw", 6)
+    with pytest.raises(ValueError, match=r"'two_samples' is too short to score: .*2 samples.*2 s"):
+        evaluate([raw], [two])
+    with pytest.warns(UserWarning, match=r"'two_samples' is too short to score.*left out"):
+        res = evaluate([raw], [long, two])
+    assert res["recordings"] == [long.name] and len(res["methods"]["Raw IMU"]["recordings"]) == 1
+
+
 def test_vqf_started_at_ground_truth_is_the_backbone(walk):
     pytest.importorskip("vqf")
     from tcn_ahrs.estimators.backbone import Backbone

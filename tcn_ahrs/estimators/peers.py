@@ -146,8 +146,9 @@ def mag_of(seq: ImuSequence, axes: int, peer: str) -> Optional[np.ndarray]:
     if axes == 6:
         return None
     if seq.mag is None:
-        raise ValueError(f"{seq.source}: field 'mag': peer '{peer}' (9-axis) needs a magnetometer, "
-                         f"recording {seq.name!r} has none; use the 6-axis variant")
+        why = seq.meta.get("mag_absent", "it has none")
+        raise ValueError(f"{seq.source}: field 'mag': peer '{peer}' (9-axis) needs a magnetometer and recording "
+                         f"{seq.name!r} has none: {why}; run every method 6-axis (data.axes=6)")
     return seq.mag
 
 

@@ -53,6 +53,31 @@ def _mean_metrics(rows: List[dict]) -> Dict[str, Optional[float]]:
     return out
 
 
+def _long_enough(sequences: List[ImuSequence]) -> List[ImuSequence]:
+    """The recordings whose ground truth outlasts the yardstick's settle (the first ``settle_s``
+    seconds are scored for nobody): a shorter one (a 2-sample file scored 5.4° for its first
+    step) is left out with a warning naming it; ValueError when none is left."""
+    from ..metrics import YARDSTICK
+
+    keep = []
+    for s in sequences:
+        valid = s.scored()
+        span = float(s.time[valid][-1] - s.time[int(np.argmax(s.quat_valid))]) if valid.any() else 0.0
+        if valid.any() and span < YARDSTICK.settle_s:
+            why = (f"{s.source}: recording {s.name!r} is too short to score: its ground truth spans {span:.3g} s "
+                   f"({int(valid.sum())} samples), within the yardstick's first {YARDSTICK.settle_s:g} s that nobody "
+                   "is scored on (docs/conventions.md); record longer")
+            if len(sequences) == 1:
+                raise ValueError(why)
+            warnings.warn(why + "; left out", stacklevel=3)
+            continue
+        keep.append(s)
+    if not keep:
+        raise ValueError("nothing to score: every recording is shorter than the yardstick's "
+                         f"{YARDSTICK.settle_s:g} s settle ({', '.join(s.name for s in sequences)})")
+    return keep
+
+
 def evaluate(
     estimators: Sequence,
     sequences: Sequence[ImuSequence],
@@ -94,6 +119,9 @@ def evaluate(
     for s in sequences:
         if s.quat is None:
             raise ValueError(f"{s.source}: field 'quat': recording {s.name!r} has no ground truth to evaluate against")
+    if align == "protocol":
+        sequences = _long_enough(sequences)
+        rec_names = [s.name for s in sequences]
     unscored = [s for s in sequences if not s.scored().any()]
     for s in unscored:
         why = ("its ground truth is invalid (NaN) everywhere" if not s.quat_valid.any()
