@@ -817,3 +817,39 @@ def test_an_all_zero_magnetometer_is_named_dead_when_a_9_axis_peer_refuses_it(tm
     assert seq.mag is None
     with pytest.raises(ValueError, match=r"field 'mag'.*reads 0 on every sample \(a dead magnetometer\).*data\.axes=6"):
         registry.build("vqf", 9).run(seq, np.array([1.0, 0, 0, 0]), 0)
+
+
+PHONE = (Path(__file__).resolve().parents[2] / "shared" / "datasets" / "phones" / "iphone4s"
+         / "Guillaume_iPhone4S_NoDist_Texting.h5")
+
+
+def _phone_with(tmp_path, edit):
+    """The iPhone 4S texting recording (../shared/datasets/phones) with ``edit(fields)`` applied."""
+    import shutil
+
+    import h5py
+
+    if not PHONE.is_file():
+        pytest.skip("the phones are not in ../shared")
+    path = tmp_path / "phone.h5"
+    shutil.copy(PHONE, path)
+    with h5py.File(path, "r+") as f:
+        fields = {k: f[k][...] for k in ("gyr", "acc", "mag")}
+        edit(fields)
+        for k, v in fields.items():
+            f[k][...] = v
+    return path
+
+
+def test_a_phones_negated_gyro_axis_it_barely_turns_about_is_refused(tmp_path):
+    """A phone held for texting turns little about its y axis (under 10 °/s of spread), so that axis
+    was never judged: its gyro y negated loaded silently (inclination 4.75° against 0.96°). An axis
+    the fitted map explains well (R² ≥ 0.85) is judged however little it turns; the clean one loads."""
+    def negate_y(f):
+        f["gyr"][:, 1] *= -1.0
+
+    from tcn_ahrs.sequence import DataError
+
+    _load(_phone_with(tmp_path, lambda f: None))
+    with pytest.raises(DataError, match=r"field 'gyro'.*(left-handed|wired differently)"):
+        _load(_phone_with(tmp_path, negate_y))
