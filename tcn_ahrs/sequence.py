@@ -13,8 +13,8 @@ from typing import Optional
 
 import numpy as np
 
-from .agreement import EXCITED_RATE, axis_fit, ground_truth_agreement  # noqa: F401 (re-exported)
-from .agreement import MIN_REPORTED_LAG_S, evidence_text, judged_hard_iron, lag_text, mag_wiring_problem
+from .agreement import (EXCITED_RATE, MIN_REPORTED_LAG_S, axis_fit, calibration_notes, evidence_text,  # noqa: F401
+                        ground_truth_agreement, judged_hard_iron, lag_text, mag_wiring_problem)  # (re-exported)
 from .conventions import GRAVITY, INPUT_RANGES, MAX_DT, MIN_DT
 
 
@@ -22,9 +22,7 @@ class DataError(ValueError):
     """Bad input data. The message names the file (source), the field and what was expected."""
 
     def __init__(self, source: str, field_name: str, problem: str):
-        self.source = source
-        self.field_name = field_name
-        self.problem = problem
+        self.source, self.field_name, self.problem = source, field_name, problem
         super().__init__(f"{source}: field '{field_name}': {problem}")
 
 
@@ -229,6 +227,8 @@ class ImuSequence:
         problem = None if self.mag is None else mag_wiring_problem(self.mag, self.quat, self.quat_valid)
         if problem:
             self._fail("mag", problem)
+        for note in calibration_notes(agree, self.mag, self.quat, self.quat_valid, self.meta.get("declared") or {}):
+            warnings.warn(f"{self.source}: {note}", UserWarning, stacklevel=3)
         if agree.get("angle_deg") is not None and agree["angle_deg"] > 45.0:
             self._fail("quat", f"the gyro disagrees with the rate differentiated from the ground truth (median "
                                f"angle {agree['angle_deg']:.0f} deg over {agree['moving']} moving samples; "

@@ -287,3 +287,73 @@ def test_an_all_zero_magnetometer_on_a_real_clip_loads_as_six_axis():
     with pytest.warns(UserWarning, match="reads 0 on every sample"):
         seq = _seq(_clip("slow", ft._zero_mag))
     assert seq.mag is None and seq.num_axes == 6
+
+
+# ---- calibration faults named (issue: faults, sixth pass): a gyro bias beyond the filter's clip and
+# a hard-iron offset, on a BROAD clip and on a phone, each with its size and the declaration that fixes it
+GYRO_BIAS = np.radians([5.0, 5.0, 5.0])
+
+
+def _notes(build) -> list:
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        seq = build()
+    return seq, [str(w.message) for w in caught if "constant bias" in str(w.message) or "hard iron" in str(w.message)]
+
+
+@needs_broad
+def test_a_gyro_bias_beyond_the_clip_and_hard_iron_are_named_on_a_broad_clip():
+    """"no fault found" after a 5 °/s gyro bias (7.04° against 1.05°) and a magnet fixed on the IMU."""
+    a = _clip("slow")
+    _, clean = _notes(lambda: _seq(a))
+    assert clean == []
+    _, gyro = _notes(lambda: _seq({**a, "gyr": a["gyr"] + GYRO_BIAS}))
+    import re
+
+    assert len(gyro) == 1 and "declare gyr_bias" in gyro[0], gyro
+    found = [float(v) for v in re.search(r"a constant bias of \[([^\]]+)\] °/s", gyro[0]).group(1).split(",")]
+    assert np.allclose(found, 5.0, atol=0.5), found
+    _, iron = _notes(lambda: _seq({**a, "mag": a["mag"] + np.array([60.0, -30.0, 20.0])}))
+    assert len(iron) == 1 and "hard iron" in iron[0] and "declare mag_hard_iron: [60." in iron[0], iron
+
+
+PHONE_4S = PHONES / "iphone4s" / "Guillaume_iPhone4S_NoDist_Texting.h5"
+
+
+@pytest.mark.skipif(not PHONE_4S.is_file(), reason="phones not in ../shared")
+def test_a_gyro_bias_and_hard_iron_are_named_on_a_phone_and_the_declarations_fix_them(tmp_path):
+    """The iPhone 4S texting recording with 5 °/s of gyro bias (AAE 24.0° against 4.8°) or 150 µT of hard
+    iron (60.4° against 4.8°) loaded with "no fault found"; named now, and the declaration the message
+    gives restores the clean recording."""
+    import re
+    import shutil
+
+    import h5py
+
+    from tcn_ahrs.datasets.generic import load_file
+
+    def phone(edit=None, declare=None):
+        path = tmp_path / "phone.h5"
+        shutil.copy(PHONE_4S, path)
+        with h5py.File(path, "r+") as f:
+            if edit:
+                key, delta = edit
+                f[key][...] = f[key][...] + delta
+            for k, v in (declare or {}).items():
+                f.attrs[k] = v
+        return load_file(path)
+
+    clean, notes = _notes(phone)
+    assert notes == []
+    for edit, key in ((("gyr", GYRO_BIAS), "gyr_bias"), (("mag", np.array([150.0, 0.0, 0.0])), "mag_hard_iron")):
+        _, notes = _notes(lambda: phone(edit))
+        assert len(notes) == 1, notes
+        declared = [float(v) for v in re.search(rf"declare {key}: \[([^\]]+)\]", notes[0]).group(1).split(",")]
+        fixed, notes = _notes(lambda: phone(edit, {key: declared}))
+        assert notes == []
+        field = "gyro" if key == "gyr_bias" else "mag"
+        # what remains is the estimate's error against the clean recording's own small offset
+        tol = np.radians(0.8) if field == "gyro" else 3.0
+        assert np.abs(getattr(fixed, field) - getattr(clean, field)).max() < tol

@@ -93,4 +93,5 @@ class GenericDeclarations:
     rate: Optional[float] = None       # nominal rate, Hz; null: from t
     clock: str = "stamps"              # stamps | nominal (a regular stream with jittered stamps: the grid)
     mag_hard_iron: Optional[List[float]] = None  # µT (3,), subtracted from the magnetometer; null: none
+    gyr_bias: Optional[List[float]] = None       # rad/s (3,), subtracted from the gyro; null: none
     gt_time_offset: float = 0.0        # s the ground truth's stamps run late against the IMU's (read at t + offset)

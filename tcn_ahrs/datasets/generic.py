@@ -41,6 +41,9 @@ key                   values                                 default
 ``mag_hard_iron``     the magnetometer's constant offset     none
                       [x, y, z] µT, subtracted (the check
                       that finds one prints it)
+``gyr_bias``          the gyro's constant bias [x, y, z]     none
+                      rad/s, subtracted (the ground-truth
+                      check that finds one prints it)
 ====================  =====================================  ==========
 
 converted here with :mod:`tcn_ahrs.conventions`. A sidecar key not in this table is an error
@@ -149,6 +152,17 @@ def _clock(src: str, t: np.ndarray, declared: str) -> Tuple[np.ndarray, str]:
                       f"{c['off_grid']:.1f} steps off any uniform grid): the filters run on the actual steps",
                       stacklevel=3)
     return t, c["kind"]
+
+
+def _vector(src: str, attrs: Dict, key: str, unit: str) -> np.ndarray:
+    """A declared constant offset ``key`` ([x, y, z] in ``unit``; zeros when not declared)."""
+    value = attrs.get(key, getattr(_DECL, key))
+    if value is None:
+        return np.zeros(3)
+    try:
+        return np.asarray(value, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise DataError(src, key, f"expected [x, y, z] in {unit}, got {value!r}") from None
 
 
 def check_declarations(src: str, attrs: Dict) -> None:
@@ -299,13 +313,8 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     mag = None
     if a["mag"] is not None:
         mag = _convert(src, "mag_unit", attrs.get("mag_unit", _DECL.mag_unit), _MAG)(check_finite(src, "mag", a["mag"]))
-        hard_iron = attrs.get("mag_hard_iron", _DECL.mag_hard_iron)
-        if hard_iron is not None:
-            try:
-                h = np.asarray(hard_iron, dtype=np.float64).reshape(3)
-            except (TypeError, ValueError):
-                raise DataError(src, "mag_hard_iron", f"expected [x, y, z] in uT, got {hard_iron!r}") from None
-            mag = mag - h
+        mag = mag - _vector(src, attrs, "mag_hard_iron", "uT")
+    gyro = gyro - _vector(src, attrs, "gyr_bias", "rad/s")
     quat = valid = None
     if a["quat"] is not None:
         quat = np.asarray(a["quat"], dtype=np.float64)
