@@ -106,18 +106,9 @@ class ImuSequence:
         """Samples ``start:stop`` as a new (validated) sequence."""
         def cut(a):
             return None if a is None else a[start:stop]
-        return replace(
-            self,
-            name=name or self.name,
-            time=self.time[start:stop],
-            gyro=self.gyro[start:stop],
-            accel=self.accel[start:stop],
-            mag=cut(self.mag),
-            quat=cut(self.quat),
-            quat_valid=cut(self.quat_valid),
-            score_mask=cut(self.score_mask),
-            meta=dict(self.meta),
-        )
+        return replace(self, name=name or self.name, time=self.time[start:stop], gyro=self.gyro[start:stop],
+                       accel=self.accel[start:stop], mag=cut(self.mag), quat=cut(self.quat),
+                       quat_valid=cut(self.quat_valid), score_mask=cut(self.score_mask), meta=dict(self.meta))
 
     def without_mag(self) -> "ImuSequence":
         """The 6-axis view of a 9-axis recording."""
@@ -264,6 +255,8 @@ class ImuSequence:
         """The accelerometer per axis against the gravity the ground truth predicts in the body
         frame (where the recording tilts enough): a dead axis, a left-handed frame, swapped or
         negated axes — causes the up test below would misreport as a ground-truth frame."""
+        if fit and fit.get("static_problem"):
+            self._fail("accel", fit["static_problem"])
         if not fit or fit.get("gyro_to_gt") is None:
             return
         judged = sorted(fit.get("judged_axes") or [])

@@ -853,3 +853,31 @@ def test_a_phones_negated_gyro_axis_it_barely_turns_about_is_refused(tmp_path):
     _load(_phone_with(tmp_path, lambda f: None))
     with pytest.raises(DataError, match=r"field 'gyro'.*(left-handed|wired differently)"):
         _load(_phone_with(tmp_path, negate_y))
+
+
+def test_a_phones_swapped_accelerometer_and_rotated_ground_truth_are_refused(tmp_path):
+    """A phone held for texting barely tilts and barely turns about y: its accelerometer x/y swapped
+    (inclination 8.1° against 1.0°) and its ground truth in a body frame rotated 10° loaded silently;
+    the swap is read on the still samples against the gravity the ground truth predicts, the rotation
+    from the rates about all three axes (y judged by its R²)."""
+    from scipy.spatial.transform import Rotation
+
+    from tcn_ahrs.sequence import DataError
+
+    def swap_acc(f):
+        f["acc"] = f["acc"][:, [1, 0, 2]]
+
+    with pytest.raises(DataError, match=r"field 'accel': axes wired differently.*still samples.*\[\[0, 1, 0\], \[1, 0, 0\]"):
+        _load(_phone_with(tmp_path, swap_acc))
+
+    path = _phone_with(tmp_path, lambda f: None)
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        q = f["quat"][...]
+        ok = np.all(np.isfinite(q), axis=1)
+        r = Rotation.from_quat(q[ok][:, [1, 2, 3, 0]]) * Rotation.from_rotvec(np.radians([10.0, 0.0, 0.0]))
+        q[ok] = r.as_quat()[:, [3, 0, 1, 2]]
+        f["quat"][...] = q
+    with pytest.raises(DataError, match=r"field 'quat': the ground truth's body frame is rotated 10\.\d deg.*gt_body_from_imu"):
+        _load(path)
