@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Mapping, Optional
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,16 @@ def never_worse(aae: Optional[float], incl: Optional[float], ref_aae: Optional[f
     if ref_incl is None:
         return True
     return incl is not None and math.isfinite(incl) and _at(incl, cfg) <= _at(ref_incl, cfg)
+
+
+def never_worse_means(means: Optional[Mapping[str, Any]], ref: Optional[Mapping[str, Any]],
+                      cfg: VerdictConfig = VERDICT) -> bool:
+    """:func:`never_worse` on two rows of a results table ({"aae_deg", "inclination_deg"}); False
+    where either row is missing."""
+    if not means or not ref:
+        return False
+    return never_worse(means.get("aae_deg"), means.get("inclination_deg"), ref.get("aae_deg"),
+                       ref.get("inclination_deg"), cfg)
 
 
 def better(aae: Optional[float], incl: Optional[float], ref_aae: Optional[float], ref_incl: Optional[float],

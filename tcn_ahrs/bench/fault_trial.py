@@ -1,6 +1,7 @@
 """The fault trial: faults a new user's recordings carry, injected into clips of real BROAD
-recordings (training trials) and run through ``tcn-ahrs evaluate`` exactly as a user would run it
-(generic files, the shipped ``broad9`` / ``broad6`` models, VQF and raw integration beside them).
+recordings (training trials) and of a phone (the iPhone 4S held for texting, ../shared/datasets/phones)
+and run through ``tcn-ahrs evaluate`` exactly as a user would run it (generic files, the shipped
+``broad9`` / ``broad6`` models on BROAD, the default on the phone, VQF and raw integration beside them).
 
 ``python -m tcn_ahrs.bench.fault_trial OUT [--code DIR]`` writes ``OUT/fault_trial.json``: per case
 what the command did — refused (its message) or ran (AAE per method, the health lines it printed,
@@ -26,12 +27,24 @@ import numpy as np
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "datasets" / "broad"
 CLIP_S, LEAD_S, FAULT_AT = 45.0, 5.0, 15.0  # clip length, rest before the motion, fault start (s into the clip)
 CLIPS = {"slow": "02_undisturbed_slow_rotation_B", "fast": "08_undisturbed_fast_rotation_with_breaks_A",
-         "translation": "18_undisturbed_fast_translation_with_breaks_B"}
+         "translation": "18_undisturbed_fast_translation_with_breaks_B", "phone": "Guillaume_iPhone4S_NoDist_Texting"}
+PHONE = SHARED.parent / "phones" / "iphone4s"
 
 
 def _clip(root: Path, name: str) -> Dict[str, np.ndarray]:
     from ..datasets import loader
 
+    if name == CLIPS["phone"]:  # the phone's first CLIP_S seconds (held for texting: it never rests)
+        import warnings
+
+        from ..datasets.generic import load_file
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            seq = load_file(PHONE / f"{name}.h5")
+        k1 = int(np.searchsorted(seq.time, seq.time[0] + CLIP_S))
+        return {"t": seq.time[:k1] - seq.time[0], "gyr": seq.gyro[:k1], "acc": seq.accel[:k1], "mag": seq.mag[:k1],
+                "quat": seq.quat[:k1]}
     seq = loader("broad").load_recording(root, name)
     k0 = max(0, int(np.argmax(seq.score_mask)) - int(LEAD_S * seq.rate))
     k1 = k0 + int(CLIP_S * seq.rate)
@@ -88,6 +101,38 @@ def _lag(seconds: float):
     return f
 
 
+def _add(key: str, offset):
+    def f(a):
+        a[key] = a[key] + np.asarray(offset)
+        return a
+    return f
+
+
+def _columns(key: str, order, signs=(1.0, 1.0, 1.0)):
+    def f(a):
+        a[key] = a[key][:, list(order)] * np.asarray(signs)
+        return a
+    return f
+
+
+def _soft_iron(a):
+    a["mag"] = a["mag"] @ np.array([[1.3, 0.2, 0.0], [0.2, 0.8, 0.0], [0.0, 0.0, 1.1]]).T
+    return a
+
+
+def _two_samples(a):
+    return {k: v[:2] for k, v in a.items()}
+
+
+def _gt_rotated(a):
+    from scipy.spatial.transform import Rotation
+
+    ok = np.all(np.isfinite(a["quat"]), axis=1)
+    r = Rotation.from_quat(a["quat"][ok][:, [1, 2, 3, 0]]) * Rotation.from_rotvec(np.radians([10.0, 0.0, 0.0]))
+    a["quat"][ok] = r.as_quat()[:, [3, 0, 1, 2]]
+    return a
+
+
 def _declared(inject, **attrs):
     def f(a):
         a = inject(a)
@@ -114,6 +159,23 @@ CASES: Dict[str, tuple] = {
                                                                  "broad9_residual", [], None),
     "all-zero magnetometer, 9-axis model": ("slow", _zero_mag, "broad9_residual", [], None),
     "gyro frozen 5 s (fast motion)": ("fast", _frozen("gyr"), "broad9_residual", [], ("heading", 4.0, 4.0)),
+    # the sixth pass (issue 55): calibration faults, a dead magnetometer and a 2-sample file with the default
+    "gyro bias 5 °/s": ("slow", _add("gyr", np.radians([5.0, 5.0, 5.0])), "broad9_residual", [], None),
+    "accelerometer bias 0.5 m/s²": ("slow", _add("acc", [0.5, 0.5, 0.5]), "broad9_residual", [], None),
+    "soft iron (a 1.3 / 0.8 / 1.1 scale, 0.2 cross-coupling)": ("slow", _soft_iron, "broad9_residual", [], None),
+    "all-zero magnetometer, the default (no ckpt=)": ("slow", _zero_mag, None, [], None),
+    "a 2-sample recording, the default": ("slow", _two_samples, None, [], None),
+    # the phone (iPhone 4S held for texting, 100 Hz): the default, as a phone user runs it
+    "phone: clean": ("phone", None, None, [], None),
+    "phone: accelerometer x and y swapped": ("phone", _columns("acc", (1, 0, 2)), None, [], None),
+    "phone: accelerometer z negated": ("phone", _columns("acc", (0, 1, 2), (1.0, 1.0, -1.0)), None, [], None),
+    "phone: gyro x and y swapped": ("phone", _columns("gyr", (1, 0, 2)), None, [], None),
+    "phone: gyro y negated": ("phone", _columns("gyr", (0, 1, 2), (1.0, -1.0, 1.0)), None, [], None),
+    "phone: gyro z negated": ("phone", _columns("gyr", (0, 1, 2), (1.0, 1.0, -1.0)), None, [], None),
+    "phone: gyro in deg/s, undeclared": ("phone", _columns("gyr", (0, 1, 2), np.degrees([1.0, 1.0, 1.0])), None, [], None),
+    "phone: gyro bias 5 °/s": ("phone", _add("gyr", np.radians([5.0, 5.0, 5.0])), None, [], None),
+    "phone: hard iron +150 µT": ("phone", _add("mag", [150.0, 0.0, 0.0]), None, [], None),
+    "phone: ground truth in a body frame rotated 10°": ("phone", _gt_rotated, None, [], None),
 }
 
 
@@ -148,12 +210,13 @@ def run_case(name: str, code: Optional[Path], work: Path, root: Path = SHARED) -
     if inject is not None:
         a = inject({k: v.copy() for k, v in a.items()})
     data = work / "data" / f"case{list(CASES).index(name):02d}"
-    _write(data / f"{CLIPS[clip][:2]}_clip.h5", a)
+    _write(data / f"{'phone' if clip == 'phone' else CLIPS[clip][:2]}_clip.h5", a)
     out = work / "out" / data.name
     from ..checkpoints import SHIPPED_DIR
 
-    ckpt_path = SHIPPED_DIR / f"{ckpt}.ckpt"   # the shipped model (a --code checkout before runs the same file)
-    cmd = [sys.executable, "-m", "tcn_ahrs", "evaluate", "data=generic", f"data.root={data}", f"ckpt={ckpt_path}",
+    # the shipped model (a --code checkout before runs the same file), or the default (no ckpt=)
+    model = [] if ckpt is None else [f"ckpt={SHIPPED_DIR / f'{ckpt}.ckpt'}"]
+    cmd = [sys.executable, "-m", "tcn_ahrs", "evaluate", "data=generic", f"data.root={data}", *model,
            "data.split=all", "baselines=[vqf]", f"out={out}", "plots=false", *extra]
     env = dict(os.environ)
     if code is not None:
@@ -199,7 +262,7 @@ def _cell(row: Optional[dict], method: Optional[str] = None, now: Optional[dict]
         return "refused: " + (why[:150] + "…" if len(why) > 150 else why).replace("|", "\\|")
     aae = row.get("aae") or {}
     m = method or next(iter(aae))
-    text = f"{aae[m]:.2f}°"
+    text = "diverged" if aae[m] is None else f"{aae[m]:.2f}°"
     win = row.get("window") or {}
     if win.get(m) is not None and (now is None or now.get("window")):
         text += f" ({win['what']} {win['after_s']:g}–{win['after_s'] + win['length_s']:g} s after: {win[m]:.2f}°)"
@@ -215,7 +278,8 @@ def markdown(result: dict) -> str:
     """The fault table of docs/troubleshooting.md: per case the shipped model before (the commit the
     issue was read at) and now, and VQF now (VQF's code did not change), from ``fault_trial.json``."""
     before = {r["case"]: r for r in (result.get("before") or {}).get("cases", [])}
-    lines = ["| fault (BROAD clip, `tcn-ahrs evaluate ckpt=broad9_residual`) | before | now | VQF |", "|---|---|---|---|"]
+    lines = ["| fault (BROAD clip, `tcn-ahrs evaluate ckpt=broad9_residual` unless it says the default; phone: the "
+             "iPhone 4S held for texting, the default) | before | now | VQF |", "|---|---|---|---|"]
     for row in result["cases"]:
         # VQF on the faulty clip (its code is the same before and now; refused now, it ran before)
         ran = row if row.get("aae") else before.get(row["case"]) or {}

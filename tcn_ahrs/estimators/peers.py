@@ -243,12 +243,10 @@ def run_resampled(est, seq: ImuSequence, init_quat: Optional[np.ndarray], init_i
 
 
 class OnFixedPeriod:
-    """``est`` given the clock a fixed-period peer (VQF) integrates: on an irregular recording the
-    uniform grid of :func:`run_resampled`; on a regular one the nominal period 1 / rate for every
-    step (VQF's ``Ts``), not the recording's small jitter. The same input as VQF, sample for sample:
-    what a "never worse than VQF" comparison of filters needs (the phones' 5 ms steps jitter; on the
-    recording's own steps the backbone and VQF differ by up to 0.45° either way on iPhone 5
-    recordings, on VQF's clock by 0.002°)."""
+    """``est`` on the clock a fixed-period peer (VQF) integrates: an irregular recording on the grid
+    of :func:`run_resampled`, a regular one at the nominal period 1 / rate (VQF's ``Ts``), not its
+    small jitter: the same input as VQF, what "never worse than VQF" needs (on the iPhone 5's own
+    jittery steps the backbone and VQF differ by up to 1.4° either way, on VQF's clock by 0.002°)."""
 
     def __init__(self, est, name: Optional[str] = None):
         self.est, self.name = est, name or f"{est.name} (VQF's clock)"

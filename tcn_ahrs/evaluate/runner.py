@@ -61,6 +61,9 @@ def _long_enough(sequences: List[ImuSequence]) -> List[ImuSequence]:
 
     keep = []
     for s in sequences:
+        if s.quat is None:  # refused below, named
+            keep.append(s)
+            continue
         valid = s.scored()
         span = float(s.time[valid][-1] - s.time[int(np.argmax(s.quat_valid))]) if valid.any() else 0.0
         if valid.any() and span < YARDSTICK.settle_s:
@@ -107,7 +110,7 @@ def evaluate(
         the results dict (see module docstring).
     """
     estimators = list(estimators)
-    sequences = list(sequences)
+    sequences = _long_enough(list(sequences)) if align == "protocol" else list(sequences)
     if axes not in (None, 6, 9):
         raise ValueError(f"axes: expected 6, 9 or None, got {axes!r}")
     names = [e.name for e in estimators]
@@ -119,9 +122,6 @@ def evaluate(
     for s in sequences:
         if s.quat is None:
             raise ValueError(f"{s.source}: field 'quat': recording {s.name!r} has no ground truth to evaluate against")
-    if align == "protocol":
-        sequences = _long_enough(sequences)
-        rec_names = [s.name for s in sequences]
     unscored = [s for s in sequences if not s.scored().any()]
     for s in unscored:
         why = ("its ground truth is invalid (NaN) everywhere" if not s.quat_valid.any()

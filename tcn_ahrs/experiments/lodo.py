@@ -21,6 +21,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Dict, Mapping, Optional, Sequence
 
+from .. import verdict
 from ..conf import CONF_DIR
 from .transfer import METRICS, score_cell, write_result
 
@@ -131,7 +132,9 @@ def lodo(data_cfgs: Mapping[str, Mapping], runs: Path, experiment: str = "genera
                                        bool(g["aae_deg"] <= 1.1 * own["aae_deg"]
                                             and g["inclination_deg"] <= 1.1 * own["inclination_deg"]))
         r = cell["riann"]
-        cell["inclination_le_riann"] = None if not r else bool(round(g["inclination_deg"], 2) <= round(r["inclination_deg"], 2))
+        # RIANN has no heading: judged on the inclination alone (the one rule, inclination in the AAE's place)
+        cell["inclination_le_riann"] = None if not r else verdict.never_worse(g["inclination_deg"], None,
+                                                                               r["inclination_deg"], None)
         rows[name] = cell
         b = cell["best_metrics"] or {}
         print(f"lodo {name} ({len(seqs)} rec.): general {g['aae_deg']:.2f}/{g['inclination_deg']:.2f}, best classical "
@@ -149,13 +152,6 @@ def _pair(m: Optional[Mapping[str, Any]]) -> str:
     return f"{m['aae_deg']:.2f} / {m['inclination_deg']:.2f}"
 
 
-def at_or_below(a: Optional[Mapping[str, Any]], b: Optional[Mapping[str, Any]]) -> bool:
-    """``a`` ≤ ``b`` in mean AAE and inclination at the tables' 0.01° rounding (False if either is missing)."""
-    if not a or not b:
-        return False
-    return all(round(float(a[k]), 2) <= round(float(b[k]), 2) for k in ("aae_deg", "inclination_deg"))
-
-
 def markdown(result: Mapping[str, Any]) -> str:
     """One row per left-out dataset: mean AAE / inclination (degrees) of each method."""
     axes = int(result.get("axes", 6))
@@ -170,7 +166,7 @@ def markdown(result: Mapping[str, Any]) -> str:
         riann = "–" if not c.get("riann") else f"{c['riann']['inclination_deg']:.2f}"
         lines.append(f"| {name} ({len(c['recordings'])}) | {_pair(c['learned'])} | {_pair(c['own'])} | {_pair(c['backbone'])} "
                      f"| {_pair(vqf)} | {best} | {riann} | {'yes' if c['never_worse'] else '**no**'} "
-                     f"| {'yes' if at_or_below(c['backbone'], vqf) else '**no**'} |")
+                     f"| {'yes' if verdict.never_worse_means(c['backbone'], vqf) else '**no**'} |")
     lines.append("")
     lines.append(("Every method on the readings with each recording's gyro bias at rest subtracted (the device "
                   "check). " if result.get("device_check") else "") +
