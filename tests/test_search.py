@@ -427,3 +427,27 @@ def test_a_learned_candidate_that_must_win_is_chosen_and_released(tmp_path):
         assert rec["test"][name]["aae_deg"] < 0.5 * rec["test"]["strapdown (defaults)"]["aae_deg"]
     assert res["release"]["chosen"] == name and (out / "release.ckpt").is_file() and (out / "release.md").is_file()
     assert res["expected_gain"]["mean"] > 0.5
+
+
+def test_no_learned_candidate_starts_from_weights_that_saw_the_outer_fold(tmp_path, monkeypatch):
+    """The fine-tuned and residual recipes started from general{axes}_residual.ckpt, which trained and
+    chose its knobs on every training recording of BROAD, EuRoC, TUM VI and OxIOD — the outer fold's
+    included: on a dataset in the mix they are left out, said, and never trained; your own recordings
+    (data=generic) and the closed loop (trained from scratch) are not."""
+    from tcn_ahrs.experiments.search import learn
+    from tcn_ahrs.experiments.search.progress import Budget
+    from tcn_ahrs.training import run as training_run
+
+    def no_training(*a, **k):
+        raise AssertionError("trained from leaking weights")
+
+    monkeypatch.setattr(training_run, "train_main", no_training)
+    said = []
+    got = learn.train_fold_candidates(["finetune", "residual"], tmp_path, 0, [], [],
+                                      ["data=euroc", "data.axes=6", "data.fold=null"], 6, Budget(None, 2, 1),
+                                      log=said.append)
+    assert got == {}
+    assert sum("left out: its starting model general6_residual.ckpt trained on euroc's" in s for s in said) == 2, said
+    for dataset, axes in (("broad", 9), ("oxiod", 9), ("tumvi", 6)):
+        assert learn.starting_leak("finetune", axes, dataset)
+    assert learn.starting_leak("finetune", 9, "generic") is None and learn.starting_leak("closed_loop", 6, "euroc") is None

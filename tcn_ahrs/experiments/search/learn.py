@@ -77,14 +77,40 @@ def data_overrides(data_cfg, axes: int) -> List[str]:
     return args
 
 
+def starting_leak(recipe: str, axes: int, dataset: str) -> Optional[str]:
+    """Why ``recipe``'s starting weights would leak ``dataset``'s outer folds into the search, or None:
+    the general models trained on the training recordings of every dataset in their mix
+    (``conf/data/general{axes}.yaml``'s parts) and chose their knobs on them, so for a dataset in
+    the mix "never on fold i's recordings" does not hold for a candidate started from them. Your
+    own recordings (``data=generic``) are clean."""
+    from ..transfer import own_datasets
+    from ...checkpoint import checkpoint_meta, load_checkpoint
+
+    init = next((a.split("=", 1)[1] for a in RECIPES[recipe][1] if a.startswith("init=")), None)
+    if init is None:
+        return None
+    path = Path(init.format(axes=axes, shipped=SHIPPED_DIR))
+    trained_on = own_datasets(str(checkpoint_meta(load_checkpoint(str(path)), str(path)).get("data") or ""))
+    if dataset not in trained_on:
+        return None
+    return (f"its starting model {path.name} trained on {dataset}'s training recordings (its mix: {', '.join(trained_on)}) "
+            "and chose its knobs on them, this outer fold's among them: left out (a general model trained without "
+            f"{dataset}, `tcn-ahrs benchmark lodo`, would start it leak-free)")
+
+
 def train_recipe(recipe: str, run_dir: Path, train: Sequence[ImuSequence], val: Sequence[ImuSequence],
                  data_args: Sequence[str], axes: int, minutes: Optional[float], seed: int = 0) -> Path:
     """Train ``recipe`` on ``train`` (its epoch / inference knobs chosen on ``val``) in ``run_dir``,
     or reuse the finished run there; returns the checkpoint that ships. ``minutes``: its time cap
-    (an unfinished run there continues from its ``last.ckpt``)."""
+    (an unfinished run there continues from its ``last.ckpt``). ValueError where its starting
+    weights saw the search's dataset (:func:`starting_leak`)."""
     from ..lodo import compose_train
     from ...training.run import train_main
 
+    dataset = next((a.split("=", 1)[1] for a in data_args if a.startswith("data=")), "")
+    leak = starting_leak(recipe, axes, dataset)
+    if leak:
+        raise ValueError(leak)
     run_dir = Path(run_dir)
     done = run_dir / "TRAINED"
     if done.is_file():
