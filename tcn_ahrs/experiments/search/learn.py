@@ -166,12 +166,23 @@ def train_fold_candidates(recipes: Sequence[str], out: Path, fold: int, train: S
     return out_est
 
 
-def gain_supported(ref: Sequence[float], got: Sequence[float], tie_margin: float) -> Tuple[bool, str]:
+ADOPTION_LEVEL = 0.05
+"""One-sided level of the paired test a learned candidate's gain must pass (:func:`gain_supported`):
+a candidate no better than the classical choice is adopted in at most 5 % of draws."""
+MIN_ADOPTION_RECORDINGS = 3
+"""Fewer validation recordings than this: the search cannot decide and keeps the classical choice."""
+
+
+def gain_supported(ref: Sequence[float], got: Sequence[float], tie_margin: float,
+                   level: float = ADOPTION_LEVEL) -> Tuple[bool, str]:
     """Whether a learned candidate's per-recording AAE ``got`` beats the classical choice's ``ref``
-    (same recordings) by a margin its spread supports: the mean gain above ``tie_margin`` of the
-    reference's mean *and* above one standard error of the paired differences. One recording has
-    no spread: no adoption on it. Returns (adopt, why)."""
+    (same recordings) by a margin its spread supports: the mean paired gain above ``tie_margin`` of
+    the reference's mean *plus* the one-sided Student-t quantile at ``level`` with n − 1 degrees of
+    freedom times the standard error of the gains (n = recordings: with 2 recordings one standard
+    error let noise through about a quarter of the time; the t quantile holds the stated level).
+    Fewer than :data:`MIN_ADOPTION_RECORDINGS`: no adoption, said. Returns (adopt, why)."""
     import numpy as np
+    from scipy.stats import t as student_t
 
     ref_a, got_a = np.asarray(ref, dtype=float), np.asarray(got, dtype=float)
     if ref_a.shape != got_a.shape or ref_a.size == 0:
@@ -179,8 +190,11 @@ def gain_supported(ref: Sequence[float], got: Sequence[float], tie_margin: float
     if not np.all(np.isfinite(got_a)):
         return False, "diverged on a validation recording"
     d = ref_a - got_a
-    if d.size < 2:
-        return False, "one validation recording: no spread to support a margin"
+    if d.size < MIN_ADOPTION_RECORDINGS:
+        return False, (f"{d.size} validation recording(s), fewer than {MIN_ADOPTION_RECORDINGS}: the search cannot "
+                       "decide and keeps the classical choice")
     mean, se = float(d.mean()), float(d.std(ddof=1) / math.sqrt(d.size))
-    need = tie_margin * float(ref_a.mean()) + se
-    return mean > need, f"gain {mean:.3f} deg vs needed {need:.3f} ({tie_margin:.0%} + standard error {se:.3f})"
+    q = float(student_t.ppf(1.0 - level, d.size - 1))
+    need = tie_margin * float(ref_a.mean()) + q * se
+    return mean > need, (f"gain {mean:.3f} deg vs needed {need:.3f} ({tie_margin:.0%} + {q:.2f} x standard error "
+                         f"{se:.3f}: one-sided {level:.0%} over {d.size} recordings)")
