@@ -103,8 +103,9 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2, max_
         sel = torch.as_tensor(keep)
         w_gyro = torch.as_tensor(c[lag:] - c[:-lag])[k[keep] + shift] / span[sel]
         w_gt = w_gt[sel]
-    # the constant part of gyro minus ground-truth rate: the gyro's bias (the rates' noise averages out)
-    out["gyro_bias"] = (w_gyro - w_gt).mean(0).numpy()
+    # the constant part of gyro minus ground-truth rate: the gyro's bias (the median: a frozen or
+    # clipped stretch is not a bias; a 5 s frozen gyro read as a 10 °/s "bias" with the mean)
+    out["gyro_bias"] = (w_gyro - w_gt).median(0).values.numpy()
     out.update(axis_fit(w_gyro.numpy(), w_gt.numpy(), min_rate, EXCITED_RATE, 1e-4,  # needs only the ground truth to turn
                         quiet_r2=MIN_QUIET_AXIS_R2))
     moving = (w_gyro.norm(dim=1) > min_rate) & (w_gt.norm(dim=1) > min_rate)
