@@ -211,3 +211,31 @@ def test_runner_says_where_the_estimate_starts_and_the_learned_model_reads_no_gr
     assert np.abs(with_gt[40] - seq.quat[40]).max() < 1e-5  # it started there
     with pytest.raises(ValueError, match="init_index"):
         est.run(seq, seq.quat[40], len(seq))
+
+
+def test_a_release_on_the_device_check_and_its_baselines_get_the_same_input(tmp_path):
+    """`tcn-ahrs evaluate ckpt=estimator.json` whose calibration is the device check gave the release
+    each recording's gyro bias at rest subtracted and the baselines the raw recording: side by side
+    on different input. Now every method reads the checked recordings (the same backbone as the
+    release and as a baseline scores the same)."""
+    from tcn_ahrs.cli import main
+    from tcn_ahrs.datasets.simulate import simulate
+    from tcn_ahrs.device_check import RestBiasCalibration
+    from tcn_ahrs.estimators.families import FAMILIES, save_estimator
+
+    root = tmp_path / "device"
+    root.mkdir()
+    for i in range(2):  # a 4 °/s gyro bias, rests now and then: the device check finds it
+        s = simulate("walking", 30.0, 100.0, seed=10 + i, device_seed=5, axes=6, gyro_bias_range_dps=(4.0, 4.1),
+                     gyro_bias_repeatability_dps=0.0, gyro_bias_rw_dps=0.0)
+        np.savetxt(root / f"rec{i}.csv", np.column_stack([s.time, s.gyro, s.accel, s.quat]), delimiter=",",
+                   comments="", fmt="%.10g", header="t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,quat_w,quat_x,quat_y,quat_z")
+    release = tmp_path / "estimator.json"
+    save_estimator(release, "backbone", 6, FAMILIES["backbone"].defaults_for(6), RestBiasCalibration())
+    out = tmp_path / "eval"
+    main(["evaluate", f"ckpt={release}", "data=generic", f"data.root={root}", "data.split=all", "data.axes=6",
+          "baselines=[backbone]", f"out={out}", "plots=false", "trajectories=false", f"hydra.run.dir={tmp_path / 'h'}"])
+    res = json.loads((out / "results.json").read_text())["methods"]
+    rel, base = [k for k in res if k != "Raw IMU"]  # the release, then the backbone baseline
+    for a, b in zip(res[rel]["recordings"], res[base]["recordings"]):
+        assert a["aae_deg"] == pytest.approx(b["aae_deg"], abs=1e-9), (rel, base, a, b)

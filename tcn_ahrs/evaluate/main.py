@@ -59,9 +59,17 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         name = str(cfg.get("name")) if cfg.get("name") not in (None, _D.name) else DEFAULT_NAME
         return _run(cfg, default(axes, name), *_recordings(cfg, True), axes, out)
     if is_estimator_file(cfg.ckpt):  # a classical family chosen by tcn-ahrs search
+        from ..device_check import RestBiasCalibration
+
         learned = load_estimator(str(cfg.ckpt), name=str(cfg.get("name") or _D.name))
         axes = min(axes, int(learned.axes or axes))
-        return _run(cfg, learned, *_recordings(cfg, general_model), axes, out)
+        # its calibration the device check: every method gets the checked recordings (side by side
+        # means the same input; the release alone got them, the baselines raw), the check run once
+        on_check = isinstance(learned.cal, RestBiasCalibration) and str(cfg.get("device_check", "auto")) != "false"
+        if on_check:
+            learned.cal = None
+            print(f"note: {Path(str(cfg.ckpt)).name} runs on the device check: every method gets the checked recordings")
+        return _run(cfg, learned, *_recordings(cfg, general_model or on_check), axes, out)
     ck = load_checkpoint(cfg.ckpt)
     layout = checkpoint_meta(ck, cfg.ckpt)["layout"]
     if axes == 9 and int(layout["axes"]) == 6:
