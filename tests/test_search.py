@@ -472,3 +472,26 @@ def test_no_learned_candidate_starts_from_weights_that_saw_the_outer_fold(tmp_pa
     for dataset, axes in (("broad", 9), ("oxiod", 9), ("tumvi", 6)):
         assert learn.starting_leak("finetune", axes, dataset)
     assert learn.starting_leak("finetune", 9, "generic") is None and learn.starting_leak("closed_loop", 6, "euroc") is None
+
+
+def test_a_candidates_real_error_is_raised_not_scored_as_diverged():
+    """Only numerical failure counts as divergence: a ValueError inside a candidate (a refusal, a bug)
+    was scored as "diverged" (an infinite score) and the candidate silently dropped."""
+    from tcn_ahrs.estimators.families import recording_scores
+
+    class Numerical:
+        name = "numerical"
+
+        def run(self, seq, q0=None, k0=0):
+            raise ZeroDivisionError("a knob point the kernel cannot run")
+
+    class Refusing:
+        name = "refusing"
+
+        def run(self, seq, q0=None, k0=0):
+            raise ValueError("field 'mag': needs a magnetometer")
+
+    seqs = [simulate("walking", 5.0, 100.0, seed=1, axes=6)]
+    assert recording_scores(Numerical(), seqs, 6)[0] == [float("inf")]
+    with pytest.raises(ValueError, match=r"refusing on .*needs a magnetometer"):
+        recording_scores(Refusing(), seqs, 6)

@@ -137,10 +137,14 @@ def recording_scores(est, seqs: Sequence[ImuSequence], axes: int) -> Tuple[List[
         k0, q0 = initial_state(s)
         try:
             q = est.run(view, q0, k0).quat
-        except (FloatingPointError, ZeroDivisionError, np.linalg.LinAlgError, ValueError):
-            # a knob point the filter cannot run with (e.g. the backbone's numba kernel dividing by
-            # zero on OxIOD at tau_acc 1.06 s, rest_th_acc 0.2): scored as diverged, never chosen
+        except (FloatingPointError, ZeroDivisionError, np.linalg.LinAlgError):
+            # a knob point the filter cannot run with numerically (e.g. the backbone's numba kernel
+            # dividing by zero on OxIOD at tau_acc 1.06 s, rest_th_acc 0.2): scored as diverged, never
+            # chosen. Any other error (a refusal, a bug: a ValueError was scored as "diverged" and the
+            # candidate silently dropped) is raised with the candidate and recording named
             return [math.inf] * len(seqs), [math.inf] * len(seqs)
+        except ValueError as e:
+            raise ValueError(f"{getattr(est, 'name', est)} on {s.name}: {e}") from e
         if not np.all(np.isfinite(q)):
             return [math.inf] * len(seqs), [math.inf] * len(seqs)
         a, i = aae_and_inclination(s, q, view.num_axes)
