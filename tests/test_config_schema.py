@@ -229,8 +229,33 @@ def test_every_schedule_composes_and_matches_the_train_schema(option):
 def test_every_yaml_file_is_checked():
     groups = {g for _, gs in PRIMARY.values() for g in gs} | {"schedule"}
     covered = {f"{n}.yaml" for n in PRIMARY} | {f"{g}/{o}.yaml" for g in groups for o in _options(g)}
+    covered |= {f"search/learn/{r}.yaml" for r in _learned_recipes_checked()}
     every = {p.relative_to(CONF_DIR).as_posix() for p in CONF_DIR.rglob("*.yaml")}
     assert every <= covered, f"YAML under conf/ no schema check covers: {sorted(every - covered)}"
+
+
+def _learned_recipes_checked():
+    """Every recipe of conf/search/learn/ read through its schema (LearnRecipe) and its overrides
+    composed with conf/train.yaml (9 and 6 axes): a misspelt key fails here, not in a search."""
+    from tcn_ahrs.checkpoints import SHIPPED_DIR
+    from tcn_ahrs.experiments.lodo import compose_train
+    from tcn_ahrs.experiments.search.learn import load_recipes
+
+    recipes = load_recipes()
+    for recipe, (_, overrides) in recipes.items():
+        for axes, data in ((9, "broad"), (6, "euroc")):
+            compose_train([o.format(axes=axes, shipped=SHIPPED_DIR) for o in overrides] + [f"data={data}"])
+    return recipes
+
+
+def test_a_learned_recipe_with_a_misspelt_key_is_refused(tmp_path, monkeypatch):
+    from tcn_ahrs.experiments.search import learn
+
+    (tmp_path / "search" / "learn").mkdir(parents=True)
+    (tmp_path / "search" / "learn" / "x.yaml").write_text("name: x\noverides: [train.epochs=1]\n")
+    monkeypatch.setattr("tcn_ahrs.conf.CONF_DIR", tmp_path)
+    with pytest.raises(ValueError, match=r"x.yaml: unknown key\(s\) \['overides'\]"):
+        learn.load_recipes()
 
 
 def test_paper_schemas_and_reproduce_modules_agree():

@@ -123,6 +123,13 @@ class CrossvalSection:
 
 
 @dataclass
+class LearnRecipe:
+    """One learned recipe of the search (``conf/search/learn/<recipe>.yaml``)."""
+    name: str = ""                                       # the candidate's name in the search's tables
+    overrides: List[str] = field(default_factory=list)   # conf/train.yaml overrides; {axes}, {shipped} filled in
+
+
+@dataclass
 class SearchSection:
     """``search:`` (conf/search.yaml = train.yaml + this section; tcn_ahrs.experiments.search)."""
     folds: Optional[List[int]] = None  # outer fold indices to run (null: all of data.folds)

@@ -1,6 +1,6 @@
 """The learned candidates the search trains inside its own folds (``search.learn``).
 
-Each recipe is a list of ``conf/train.yaml`` overrides (:data:`RECIPES`); for outer fold ``i`` it
+Each recipe is a YAML file of ``conf/train.yaml`` overrides (``conf/search/learn/``, :data:`RECIPES`); for outer fold ``i`` it
 is trained on the fold's first inner training set — never on fold ``i``'s recordings — its epoch or
 inference knobs chosen on that split's validation recordings, whole (early stopping on the inner
 validation), and it is then compared with the classical candidates on those validation recordings
@@ -20,23 +20,32 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 from ...checkpoints import SHIPPED_DIR
 from ...sequence import ImuSequence
 
-RECIPES: Dict[str, Tuple[str, Tuple[str, ...]]] = {
-    # the general model's residual networks fine-tuned on the device (its short schedule); it keeps
-    # the general model where the inner validation says fine-tuning did not help
-    "finetune": ("residual (fine-tuned general)",
-                 ("experiment=finetune", "init={shipped}/general{axes}_residual.ckpt", "train.supervision=gt",
-                  "train.adopt_on=parts")),  # its validation recordings are already others than it trained on
-    # the residual on the backbone trained longer at the residual schedule's learning rate, started
-    # from the general model's weights (same architecture, both axes)
-    "residual": ("residual (trained)",
-                 ("experiment=finetune", "init={shipped}/general{axes}_residual.ckpt", "train.supervision=gt",
-                  "train.epochs=12", "train.lr=0.001", "train.keep_if_not_better=false")),
-    # the learned closed loop (EuRoC's shipped family); another architecture: trained from scratch
-    "closed_loop": ("closed_loop (trained)",
-                    ("model=ahrs{axes}", "+schedule=closed_loop", "train.epochs=10", "train.device_check=true")),
-}
-"""Learned recipe -> (candidate name, ``conf/train.yaml`` overrides; ``{axes}`` is the data's, ``{shipped}`` the
-installed models' folder, :data:`tcn_ahrs.checkpoints.SHIPPED_DIR`)."""
+LEARN_DIR = "search/learn"
+"""The learned recipes: one YAML file each under ``conf/search/learn/`` (its candidate name and its
+``conf/train.yaml`` overrides), so a user adds or edits a recipe without touching the code."""
+
+
+def load_recipes() -> Dict[str, Tuple[str, Tuple[str, ...]]]:
+    """Recipe name -> (candidate name, ``conf/train.yaml`` overrides; ``{axes}`` is the data's,
+    ``{shipped}`` the installed models' folder, :data:`tcn_ahrs.checkpoints.SHIPPED_DIR`), from
+    ``conf/search/learn/*.yaml``."""
+    import yaml
+
+    from ...conf import CONF_DIR
+    from ...config import check_section
+    from ...config.train import LearnRecipe
+
+    recipes = {}
+    for path in sorted((CONF_DIR / LEARN_DIR).glob("*.yaml")):
+        doc = yaml.safe_load(path.read_text()) or {}
+        check_section(doc, LearnRecipe, str(path))
+        if not doc.get("name") or not doc.get("overrides"):
+            raise ValueError(f"{path}: expected a recipe: name (the candidate's) and overrides (a list)")
+        recipes[path.stem] = (str(doc["name"]), tuple(str(o) for o in doc["overrides"]))
+    return recipes
+
+
+RECIPES = load_recipes()
 
 
 def check_recipes(names: Sequence[str]) -> List[str]:
