@@ -59,6 +59,9 @@ Blocks (:data:`BLOCKS`):
     The gate on every real recording, ``tcn-ahrs benchmark devices`` → ``runs/benchmark/devices/devices.json``,
     copied to ``docs/results/json/devices.json``, rendered by :func:`tcn_ahrs.experiments.devices.markdown`
     (the default's recordings worse than VQF listed).
+``causality`` (docs/results.md)
+    The cost of the default's offline device check against what a device runs, ``python scripts/causality.py``
+    → ``docs/results/json/causality.json``, rendered by :func:`tcn_ahrs.experiments.devices.causality_markdown`.
 ``transfer_summary`` (README.md)
     The same JSON, compact: per shipped checkpoint, on each dataset, the learned model's mean AAE
     (inclination) beside the best classical filter on the same recordings, and whether it is
@@ -271,6 +274,8 @@ BLOCKS: Dict[str, Block] = {
     "rates": Block("docs/results/json/rates.json", lambda result: _transfer.rates_markdown(result), ("docs/results.md",)),
     "devices": Block("docs/results/json/devices.json", lambda result: _devices.markdown(result, listed=("default",)),
                      ("docs/results.md",)),
+    "causality": Block("docs/results/json/causality.json", lambda result: _devices.causality_markdown(result),
+                       ("docs/results.md",)),
     "fault_trial": Block("docs/results/json/fault_trial.json", lambda result: _fault_trial.markdown(result),
                          ("docs/troubleshooting.md",)),
 }

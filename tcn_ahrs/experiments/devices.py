@@ -251,3 +251,22 @@ def _shipped_dir() -> Path:
     from ..checkpoints import SHIPPED_DIR
 
     return Path(SHIPPED_DIR)
+
+
+def causality_markdown(result: Mapping[str, Any]) -> str:
+    """``scripts/causality.py``'s table: per dataset the default on the offline device check, on raw
+    input (what a device runs) and the causal candidates, mean AAE, with the recordings worse than VQF
+    on the same raw input."""
+    variants = list(result["variants"])
+    head = ["dataset", "recordings", "VQF, offline check", "default, offline check", "VQF raw", "default raw (a device)",
+            *variants]
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for name, r in result["datasets"].items():
+        cells = [f"{r['vqf offline check']:.2f}", f"{r['default offline check']:.2f}", f"{r['vqf raw']:.2f}",
+                 f"{r['default on raw']:.2f}"]
+        cells += [f"{r[v]:.2f} (worse on {r[v + ': worse than vqf raw']})" for v in variants]
+        lines.append(f"| {name} | {r['recordings']} | " + " | ".join(cells) + " |")
+    lines += ["", "Mean AAE in degrees over every recording (the yardstick); in brackets the recordings where the "
+              "candidate is worse than VQF on the same raw input (AAE or inclination, at 0.01°). Every method on VQF's "
+              "clock. Command: `python scripts/causality.py`."]
+    return "\n".join(lines) + "\n"
