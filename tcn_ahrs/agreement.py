@@ -17,7 +17,9 @@ MIN_LAG_SAMPLES = 200  # turning samples needed to fit a clock offset (a still c
 MIN_AXIS_R2 = 0.8  # share of an axis's reference signal the fitted map must explain to judge it
 # ... about an axis the recording barely turns about (a phone held for texting: 4-8 °/s of spread
 # about its y axis, with R² 0.84-0.90): a stricter share; on the 93 real recordings (BROAD, EuRoC,
-# TUM VI, OxIOD, iPhones) such axes read their own sign, so a negated phone gyro axis is named
+# TUM VI, OxIOD, iPhones) such axes read their own sign, so a negated phone gyro axis is named. The
+# mount rotation is fitted only where at least two axes are excited besides (a 3.5 s EuRoC tail that
+# barely turns read a 6.7° mount from three quiet axes)
 MIN_QUIET_AXIS_R2 = 0.85
 
 

@@ -147,7 +147,7 @@ def test_ground_truth_starting_late_is_aligned(sequences):
 
 
 def test_axes_and_broad_columns():
-    seq = constant_rate_sequence("mag", np.array([0.1, 0.2, 0.3]), n=200, mag=True)
+    seq = constant_rate_sequence("mag", np.array([0.1, 0.2, 0.3]), n=300, mag=True)  # 3 s: past the 2 s settle
     res9 = evaluate([ConstantBodyOffset()], [seq], align=False)
     r9 = res9["methods"]["Offset 2deg"]["recordings"][0]
     assert r9["axes"] == 9 and r9["broad_mode"] == "9d" and r9["total_deg"] == pytest.approx(2.0, abs=1e-9)

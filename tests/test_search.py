@@ -448,6 +448,15 @@ def test_adoption_passes_on_noise_at_most_at_its_stated_level():
         assert adopted / 2000 <= ADOPTION_LEVEL + 0.015, (n, adopted)
     ref = rng.uniform(1.0, 4.0, 8)
     assert gain_supported(ref, 0.8 * ref + rng.normal(0.0, 0.05, 8), 0.02)[0]
+    # what the test said is printed per learned candidate (a "cannot decide" is never silent)
+    from tcn_ahrs.experiments.search.choice import adoption_reasons
+
+    cands = {"ecf (defaults)": {"calibration": "none", "tuned": False, "inner_val": [[2.0, 1.0]],
+                                "inner_val_recordings": [[2.0, 2.1]]},
+             "residual (trained)": {"calibration": "learned", "tuned": True, "inner_val": [[1.0, 1.0]],
+                                    "inner_val_recordings": [[1.0, 1.1]]}}
+    why = adoption_reasons(cands, 0, 0.02, 0.5)["residual (trained)"]
+    assert why.startswith("against ecf (defaults)") and "cannot decide" in why
 
 
 def test_no_learned_candidate_starts_from_weights_that_saw_the_outer_fold(tmp_path, monkeypatch):

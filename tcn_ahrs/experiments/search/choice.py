@@ -34,6 +34,15 @@ def choose(candidates: Dict[str, Tuple[float, float]], tie_margin: float, incl_m
     return min(ties, key=lambda k: (simplicity_rank(k), ok[k][0]))
 
 
+def classical_choice(cands: Dict[str, Dict[str, Any]], tie_margin: float, incl_margin: float) -> str:
+    """The choice among the classical candidates alone: :func:`choose` on their mean over the inner
+    splits, the inclination bar the best untuned filter's."""
+    classical = {k: v for k, v in cands.items() if v["calibration"] != "learned"}
+    mean = {k: np.mean(np.asarray(v["inner_val"], dtype=float), axis=0) for k, v in classical.items()}
+    bar_incl = min(float(mean[k][1]) for k, v in classical.items() if not v["tuned"])
+    return choose({k: (float(m[0]), float(m[1])) for k, m in mean.items()}, tie_margin, incl_margin, bar_incl)
+
+
 def choose_candidate(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_margin: float,
                      incl_margin: float) -> str:
     """The choice among one fold's candidate records (``inner_val``: a row of (AAE, inclination)
@@ -43,10 +52,7 @@ def choose_candidate(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_m
     inclination within ``incl_margin``, by more than ``tie_margin`` plus the standard error of its
     gain over that split's recordings (:func:`tcn_ahrs.experiments.search.learn.gain_supported`;
     records without per-recording scores: by ``tie_margin``)."""
-    classical = {k: v for k, v in cands.items() if v["calibration"] != "learned"}
-    mean = {k: np.mean(np.asarray(v["inner_val"], dtype=float), axis=0) for k, v in classical.items()}
-    bar_incl = min(float(mean[k][1]) for k, v in classical.items() if not v["tuned"])
-    chosen = choose({k: (float(m[0]), float(m[1])) for k, m in mean.items()}, tie_margin, incl_margin, bar_incl)
+    chosen = classical_choice(cands, tie_margin, incl_margin)
     for name, v in cands.items():
         if v["calibration"] != "learned":
             continue
@@ -65,6 +71,22 @@ def choose_candidate(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_m
         elif got[0] < ref[0] * (1.0 - tie_margin):  # a record written before per-recording scores
             chosen = name
     return chosen
+
+
+def adoption_reasons(cands: Dict[str, Dict[str, Any]], learned_split: int, tie_margin: float,
+                     incl_margin: float) -> Dict[str, str]:
+    """Per learned candidate, what its paired test said against the classical choice on the
+    recordings it was validated on (:func:`tcn_ahrs.experiments.search.learn.gain_supported`): the
+    search prints it, so "cannot decide" (fewer than three recordings) is never silent."""
+    from .learn import gain_supported
+
+    ref = classical_choice(cands, tie_margin, incl_margin)
+    out = {}
+    for name, v in cands.items():
+        if v["calibration"] == "learned" and "inner_val_recordings" in v and "inner_val_recordings" in cands[ref]:
+            out[name] = f"against {ref}: " + gain_supported(cands[ref]["inner_val_recordings"][learned_split],
+                                                            v["inner_val_recordings"][0], tie_margin)[1]
+    return out
 
 
 def fold_choice(records: Sequence[Dict[str, Any]], tie_margin: float, incl_margin: float) -> str:

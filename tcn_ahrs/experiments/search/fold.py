@@ -12,7 +12,7 @@ import numpy as np
 from ... import calibration as cal_mod
 from ...estimators.families import FAMILIES, Calibrated, Family, fit_named_calibration, mean_scores, recording_scores
 from ...sequence import ImuSequence
-from .choice import choose_candidate
+from .choice import adoption_reasons, choose_candidate
 from ...checkpoint import networks_off
 from .records import _sqlite_storage
 
@@ -142,6 +142,8 @@ def search_fold(outer: int, splits: Sequence[Tuple[list, list]], others: Sequenc
                       "networks_off": networks_off(getattr(est, "ckpt_path", None))}
         log(f"   fold {outer} seed {seed}: {fam:<32s} inner val {v[0]:8.3f} / {v[1]:6.3f} (on inner split {learned_split})")
     chosen = choose_candidate(cands, learned_split, tie_margin, incl_margin)
+    for name, why in adoption_reasons(cands, learned_split, tie_margin, incl_margin).items():
+        log(f"   fold {outer} seed {seed}: {name}: {why}")
     log(f"   fold {outer} seed {seed}: chose {chosen}")
     # every classical candidate fitted again on all the outer training recordings, the learned
     # ones as trained; the outer fold only scores (one runner, one yardstick)
