@@ -234,6 +234,16 @@ def hard_iron_fit(mag: np.ndarray) -> dict:
     return out
 
 
+def signed_permutations():
+    """The 48 signed permutation matrices W (3, 3) — every way three axes can be wired, swapped or
+    negated — each with its key (W as a tuple of int tuples)."""
+    for perm in permutations(range(3)):
+        for signs in product((1.0, -1.0), repeat=3):
+            w = np.zeros((3, 3))
+            w[range(3), perm] = signs
+            yield tuple(map(tuple, w.astype(int))), w
+
+
 def mag_wiring_fit(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray, step: int = 1) -> dict:
     """The magnetometer's axes against the ground truth: for each of the 48 signed permutations W,
     least squares of ``R_k W^T m_k = m_nav + R_k h`` (a constant field in the navigation frame and
@@ -254,14 +264,10 @@ def mag_wiring_fit(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray, step: i
     m = np.asarray(mag, dtype=np.float64)[idx]
     design = np.concatenate([np.broadcast_to(np.eye(3), r.shape), -r], axis=2).reshape(-1, 6)
     fits = {}
-    for perm in permutations(range(3)):
-        for signs in product((1.0, -1.0), repeat=3):
-            w = np.zeros((3, 3))
-            w[range(3), perm] = signs                                # imu reading = W body
-            y = np.einsum("nij,nj->ni", r, m @ w).reshape(-1)        # R W^T m  (W^T m = m @ W)
-            sol, *_ = np.linalg.lstsq(design, y, rcond=None)
-            rms = float(np.sqrt(np.mean((y - design @ sol) ** 2)))
-            fits[tuple(map(tuple, w.astype(int)))] = (rms, sol)
+    for key, w in signed_permutations():                             # imu reading = W body
+        y = np.einsum("nij,nj->ni", r, m @ w).reshape(-1)            # R W^T m  (W^T m = m @ W)
+        sol, *_ = np.linalg.lstsq(design, y, rcond=None)
+        fits[key] = (float(np.sqrt(np.mean((y - design @ sol) ** 2))), sol)
     eye = tuple(map(tuple, np.eye(3, dtype=int)))
     best = min(fits, key=lambda k: fits[k][0])
     # as wired, without the offset: how much of the residual a constant body-frame offset explains
@@ -304,12 +310,7 @@ def static_accel_problem(acc: np.ndarray, expected: np.ndarray, gyro: np.ndarray
     if still.sum() < 500:
         return None
     a, e = acc[still], expected[still]
-    rms = {}
-    for perm in permutations(range(3)):
-        for signs in product((1.0, -1.0), repeat=3):
-            w = np.zeros((3, 3))
-            w[range(3), perm] = signs
-            rms[tuple(map(tuple, w.astype(int)))] = float(np.sqrt(np.mean(np.sum((a @ w.T - e) ** 2, 1))))
+    rms = {key: float(np.sqrt(np.mean(np.sum((a @ w.T - e) ** 2, 1)))) for key, w in signed_permutations()}
     given, best = rms[tuple(map(tuple, np.eye(3, dtype=int)))], min(rms, key=rms.get)
     if not (given > 2.0 * rms[best] and given - rms[best] > 0.5):
         return None
