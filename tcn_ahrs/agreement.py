@@ -74,7 +74,6 @@ def ground_truth_agreement(seq, lag_s: float = 0.05, min_rate: float = 0.2, max_
     # the accelerometer per axis against the gravity the ground truth predicts in the body frame
     expected = so3.quat_rotate(so3.quat_conj(qv), torch.tensor([0.0, 0.0, GRAVITY], dtype=torch.float64).expand_as(a))
     out["accel_fit"] = axis_fit(a.numpy(), expected.numpy(), 0.0, 0.1 * GRAVITY, 1e-3, saturation=False, offset=False)
-    out["accel_bias"] = (a - expected).mean(0).numpy()  # the motion's specific force averages out in the body frame
     out["accel_fit"]["static_problem"] = static_accel_problem(a.numpy(), expected.numpy(), seq.gyro[valid])
     if ok.sum() < 30:
         return out
@@ -244,19 +243,20 @@ def signed_permutations():
             yield tuple(map(tuple, w.astype(int))), w
 
 
-def mag_wiring_fit(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray, step: int = 1) -> dict:
+def mag_wiring_fit(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray, step: Optional[int] = None) -> dict:
     """The magnetometer's axes against the ground truth: for each of the 48 signed permutations W,
     least squares of ``R_k W^T m_k = m_nav + R_k h`` (a constant field in the navigation frame and
     a constant body-frame offset ``h``; R_k = nav_from_body). ``residual`` {W as a tuple: RMS µT};
     ``best``: the W that fits best, ``identity`` / ``best_rms``: the RMS of W = I and of the best,
-    ``offset``: h of W = I (µT), ``field``: m_nav of W = I."""
+    ``offset``: h of W = I (µT), ``field``: m_nav of W = I, ``identity_no_offset``: the RMS of
+    W = I without the offset. ``step``: every step-th sample (default: about 4000 of them)."""
 
     import torch
 
     from . import so3
 
     ok = np.asarray(valid, dtype=bool) & (np.linalg.norm(mag, axis=1) > 0)
-    idx = np.flatnonzero(ok)[::max(1, step)]
+    idx = np.flatnonzero(ok)[::max(1, step if step is not None else len(mag) // 4000)]
     out = {"best": None, "identity": None, "best_rms": None, "offset": None, "field": None, "n": int(idx.size)}
     if idx.size < 30:
         return out
@@ -323,16 +323,15 @@ GYRO_BIAS_CLIP = np.radians(2.0)
 """rad/s: the largest gyro bias VQF's defaults (and the backbone's, the default) estimate in motion."""
 
 
-def calibration_notes(agree: dict, mag: Optional[np.ndarray], quat: np.ndarray, valid: np.ndarray,
-                      declared) -> List[str]:
+def calibration_notes(agree: dict, mag_fit: Optional[dict], declared) -> List[str]:
     """Calibration faults the ground truth shows, each with its size and the fix (warnings: the
     recording is usable, the filter will do worse than it could):
 
-    * a gyro bias beyond what the filter estimates in motion (:data:`GYRO_BIAS_CLIP`): the mean of
-      gyro minus ground-truth rate over the recording (the iPhone 5: (+5.4, −0.9, +0.7) °/s, EuRoC's
+    * a gyro bias beyond what the filter estimates in motion (:data:`GYRO_BIAS_CLIP`): the median
+      of gyro minus ground-truth rate over the recording (the iPhone 5: (+5.4, −0.9, +0.7) °/s, EuRoC's
       MAV: (−0.1, +1.2, +4.4) °/s; BROAD, TUM VI, OxIOD, iPhone 4S: under 1 °/s);
-    * a magnetometer offset (hard iron) fixed in the body: the offset of :func:`mag_wiring_fit`
-      (a constant field in the navigation frame) where it is larger than half the field and
+    * a magnetometer offset (hard iron) fixed in the body: the offset of ``mag_fit``
+      (:func:`mag_wiring_fit`, None without a magnetometer: a constant field in the navigation frame) where it is larger than half the field and
       explains most of the residual (as wired, with the offset: under 30 % of the residual without
       it; the 78 real recordings with a magnetometer fit 0.01-1.2 times the field, their residual
       at least 45 % of the one without; a 150 µT offset on a phone: 3.3 times, 2.5 %).
@@ -346,25 +345,22 @@ def calibration_notes(agree: dict, mag: Optional[np.ndarray], quat: np.ndarray, 
                      f"ground truth, beyond the {np.degrees(GYRO_BIAS_CLIP):g} °/s the filters estimate in motion (VQF's "
                      f"clip): declare gyr_bias: {b} (rad/s, subtracted), or let `tcn-ahrs search` fit it (its "
                      "gyro_bias calibration); the device check subtracts it only where the recording rests")
-    if mag is not None and "mag_hard_iron" not in declared:
-        fit = mag_wiring_fit(mag, quat, valid, step=max(1, len(mag) // 4000))
-        if fit["offset"] is not None:
-            h, field = fit["offset"], float(np.linalg.norm(fit["field"]))
-            if np.linalg.norm(h) > 0.5 * field and fit["identity"] < 0.3 * fit["identity_no_offset"]:
-                notes.append(f"field 'mag': a constant offset of {np.round(-h, 1).tolist()} uT fixed in the body "
-                             f"(hard iron: {np.linalg.norm(h) / field:.1f} times the {field:.0f} uT field; the field stays "
-                             f"constant to {fit['identity']:.1f} uT with it removed, {fit['identity_no_offset']:.1f} uT "
-                             f"without): declare mag_hard_iron: {np.round(-h, 1).tolist()}")
+    if mag_fit is not None and mag_fit["offset"] is not None and "mag_hard_iron" not in declared:
+        h, field = mag_fit["offset"], float(np.linalg.norm(mag_fit["field"]))
+        if np.linalg.norm(h) > 0.5 * field and mag_fit["identity"] < 0.3 * mag_fit["identity_no_offset"]:
+            notes.append(f"field 'mag': a constant offset of {np.round(-h, 1).tolist()} uT fixed in the body "
+                         f"(hard iron: {np.linalg.norm(h) / field:.1f} times the {field:.0f} uT field; the field stays "
+                         f"constant to {mag_fit['identity']:.1f} uT with it removed, {mag_fit['identity_no_offset']:.1f} uT "
+                         f"without): declare mag_hard_iron: {np.round(-h, 1).tolist()}")
     return notes
 
 
-def mag_wiring_problem(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray) -> Optional[str]:
-    """The magnetometer's axes against the ground truth (:func:`mag_wiring_fit`), or None: named
+def mag_wiring_problem(fit: dict) -> Optional[str]:
+    """The magnetometer's axes against the ground truth (``fit``: :func:`mag_wiring_fit`'s), or None: named
     where another signed permutation of its columns keeps the field constant in the navigation
     frame far better than the columns as given (a 3 times smaller residual, > 5 uT as given:
     BROAD's trials fit 0.8-16 uT as given, and where one permutation is clearly best it is the
     identity; a trial that barely turns ties several)."""
-    fit = mag_wiring_fit(mag, quat, valid, step=max(1, len(mag) // 4000))
     if fit["best"] is None or np.array_equal(fit["best"], np.eye(3)):
         return None
     if not (fit["identity"] > 5.0 and fit["identity"] > 3.0 * fit["best_rms"]):

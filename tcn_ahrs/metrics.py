@@ -141,14 +141,17 @@ class Yardstick:
 
     settle_s: float = 2.0
 
-    def mask(self, seq) -> np.ndarray:
-        """(N,) bool: ``seq.scored()`` without the first ``settle_s`` seconds after the first
-        valid ground truth; ``seq.scored()`` itself where that would leave nothing."""
+    def settled(self, seq) -> np.ndarray:
+        """(N,) bool: ``seq.scored()`` without the first ``settle_s`` seconds after the first valid
+        ground truth (nothing left: a recording too short to score, which evaluate refuses)."""
         m = seq.scored()
         if not seq.quat_valid.any() or self.settle_s <= 0:
             return m
-        t0 = seq.time[int(np.argmax(seq.quat_valid))]
-        settled = m & (seq.time >= t0 + self.settle_s)
+        return m & (seq.time >= seq.time[int(np.argmax(seq.quat_valid))] + self.settle_s)
+
+    def mask(self, seq) -> np.ndarray:
+        """(N,) bool: :meth:`settled`; ``seq.scored()`` itself where that would leave nothing."""
+        m, settled = seq.scored(), self.settled(seq)
         if not settled.any() and m.any():  # a short recording: scored whole, and said, not silently
             warnings.warn(f"{seq.name}: its ground truth ends within the yardstick's {self.settle_s:g} s settle: every "
                           "method is scored on all its samples (not comparable with longer recordings)")

@@ -14,7 +14,7 @@ from typing import Optional
 import numpy as np
 
 from .agreement import (EXCITED_RATE, MIN_REPORTED_LAG_S, axis_fit, calibration_notes, evidence_text,  # noqa: F401
-                        ground_truth_agreement, judged_hard_iron, lag_text, mag_wiring_problem)  # (re-exported)
+                        ground_truth_agreement, judged_hard_iron, lag_text, mag_wiring_fit, mag_wiring_problem)
 from .conventions import GRAVITY, INPUT_RANGES, MAX_DT, MIN_DT
 
 
@@ -215,10 +215,11 @@ class ImuSequence:
                           f"(fitted from the rates; the wiring and mount checks judge what remains): declare "
                           f"gt_time_offset: {lag:.4g} to align them", UserWarning, stacklevel=3)
         self._check_gyro_axes(agree)  # the specific per-axis causes before the general disagreement
-        problem = None if self.mag is None else mag_wiring_problem(self.mag, self.quat, self.quat_valid)
+        mag_fit = None if self.mag is None else mag_wiring_fit(self.mag, self.quat, self.quat_valid)  # read by both below
+        problem = None if mag_fit is None else mag_wiring_problem(mag_fit)
         if problem:
             self._fail("mag", problem)
-        for note in calibration_notes(agree, self.mag, self.quat, self.quat_valid, self.meta.get("declared") or {}):
+        for note in calibration_notes(agree, mag_fit, self.meta.get("declared") or {}):
             warnings.warn(f"{self.source}: {note}", UserWarning, stacklevel=3)
         if agree.get("angle_deg") is not None and agree["angle_deg"] > 45.0:
             self._fail("quat", f"the gyro disagrees with the rate differentiated from the ground truth (median "

@@ -65,7 +65,7 @@ def evaluate_main(cfg: DictConfig) -> Dict[str, Any]:
         axes = min(axes, int(learned.axes or axes))
         # its calibration the device check: every method gets the checked recordings (side by side
         # means the same input; the release alone got them, the baselines raw), the check run once
-        on_check = isinstance(learned.cal, RestBiasCalibration) and str(cfg.get("device_check", "auto")) != "false"
+        on_check = isinstance(learned.cal, RestBiasCalibration) and str(cfg.get("device_check", _D.device_check)).lower() != "false"
         if on_check:
             learned.cal = None
             print(f"note: {Path(str(cfg.ckpt)).name} runs on the device check: every method gets the checked recordings")

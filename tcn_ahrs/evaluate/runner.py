@@ -65,8 +65,8 @@ def _long_enough(sequences: List[ImuSequence]) -> List[ImuSequence]:
             keep.append(s)
             continue
         valid = s.scored()
-        span = float(s.time[valid][-1] - s.time[int(np.argmax(s.quat_valid))]) if valid.any() else 0.0
-        if valid.any() and span < YARDSTICK.settle_s:
+        if valid.any() and not YARDSTICK.settled(s).any():
+            span = float(s.time[valid][-1] - s.time[int(np.argmax(s.quat_valid))])
             why = (f"{s.source}: recording {s.name!r} is too short to score: its ground truth spans {span:.3g} s "
                    f"({int(valid.sum())} samples), within the yardstick's first {YARDSTICK.settle_s:g} s that nobody "
                    "is scored on (docs/conventions.md); record longer")
