@@ -142,12 +142,10 @@ class Yardstick:
     settle_s: float = 2.0
 
     def settled(self, seq) -> np.ndarray:
-        """(N,) bool: ``seq.scored()`` without the first ``settle_s`` seconds after the first valid
-        ground truth (nothing left: a recording too short to score, which evaluate refuses)."""
-        m = seq.scored()
-        if not seq.quat_valid.any() or self.settle_s <= 0:
-            return m
-        return m & (seq.time >= seq.time[int(np.argmax(seq.quat_valid))] + self.settle_s)
+        """(N,) bool: ``seq.scored()`` past the first ``settle_s`` s of ground truth (none: too short to score)."""
+        m, valid = seq.scored(), seq.quat_valid
+        on = valid.any() and self.settle_s > 0
+        return m & (seq.time >= seq.time[int(np.argmax(valid))] + self.settle_s) if on else m
 
     def mask(self, seq) -> np.ndarray:
         """(N,) bool: :meth:`settled`; ``seq.scored()`` itself where that would leave nothing."""
