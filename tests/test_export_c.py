@@ -147,14 +147,17 @@ def test_the_translated_backbone_equals_the_python_kernel(tmp_path):
     dbl = ct.POINTER(ct.c_double)
     for params, use_mag in ((K.BackboneParams(), True), (K.BackboneParams(), False),
                             (K.BackboneParams(mag_current_tau=0.0, rest_bias=0.0), True),
-                            (K.BackboneParams(motion_bias=0.0, mag_rejection=0.0), True)):
+                            (K.BackboneParams(motion_bias=0.0, mag_rejection=0.0), True),
+                            (K.BackboneParams(rest_check=1.0), True)):
         q0 = np.array([0.9, 0.1, -0.2, 0.3])
-        ref = bb.run(seq.gyro, acc, seq.mag if use_mag else None, dt, params, q0=q0, acc_trust=trusts[0],
+        # the causal device check (rest_check) takes a bias beyond VQF's clip: 4 °/s about z
+        gyro = seq.gyro + (np.radians([0.0, 0.0, 4.0]) if params.rest_check > 0.5 else 0.0)
+        ref = bb.run(gyro, acc, seq.mag if use_mag else None, dt, params, q0=q0, acc_trust=trusts[0],
                      mag_trust=trusts[1], bias_trust=trusts[2])
         s = bb.start_state(params, q0)
         q, f = np.zeros((n, 4)), np.zeros((n, 6))
         args = [np.ascontiguousarray(v, dtype=np.float64) for v in
-                (np.asarray(params.vector()), s, seq.gyro, acc, seq.mag, dt, *trusts)]
+                (np.asarray(params.vector()), s, gyro, acc, seq.mag, dt, *trusts)]
         lib.bb_run(*[a.ctypes.data_as(dbl) for a in args], ct.c_int(n), ct.c_int(int(use_mag)),
                    q.ctypes.data_as(dbl), f.ctypes.data_as(dbl))
         assert np.abs(q - ref["quat"]).max() < 1e-9
@@ -165,6 +168,8 @@ def test_the_translated_backbone_equals_the_python_kernel(tmp_path):
             assert ref["rest"].any()
         if use_mag and params.mag_rejection > 0.5:
             assert ref["mag_disturbed"].any()
+        if params.rest_check > 0.5:   # the check took the rest's bias (beyond VQF's 2 °/s clip)
+            assert np.abs(np.degrees(ref["gyro_bias"][-1, 2]) - 4.0) < 0.5
 
 
 @needs_cc

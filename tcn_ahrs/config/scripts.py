@@ -23,10 +23,11 @@ class EvaluateConfig:
     plots: bool = True
     trajectories: bool = True
     align: str = "protocol"      # the yardstick (tcn_ahrs.metrics); or heading | first | none
-    # the device check (tcn_ahrs.device_check, no ground truth): each recording's gyro bias at rest
-    # subtracted before every method; auto: with the general models (no ckpt given) and a model
-    # trained on checked recordings (train.device_check), off for one trained on raw readings
-    device_check: str = "auto"   # auto | true | false
+    # the offline device check (tcn_ahrs.device_check, no ground truth): each recording's gyro bias at
+    # rest, read from the whole recording, subtracted before every method; auto: with the general models
+    # and a model trained on checked recordings (train.device_check); the default (no ckpt) checks
+    # causally inside its filter (kernels/backbone.py: rest_check) and every method gets raw readings
+    device_check: str = "auto"   # auto | offline (old name: true) | false
 
 
 @dataclass

@@ -209,7 +209,21 @@ def export_main(cfg) -> Dict[str, Path]:
     if unknown:
         raise ValueError(f"export: unknown key(s) {sorted(unknown)}; expected a subset of {sorted(KEYS)}")
     if not cfg.ckpt or not cfg.out:
-        raise ValueError("export: pass ckpt=PATH (a checkpoint written by tcn-ahrs train) and out=FILE.pt")
+        raise ValueError("export: pass ckpt=PATH (a checkpoint written by tcn-ahrs train, or default6 / default9: "
+                         "what tcn-ahrs evaluate runs without ckpt=) and out=FILE.pt")
+    if str(cfg.ckpt) in ("default",):
+        raise ValueError("export: ckpt=default: name the axes, ckpt=default6 or ckpt=default9")
+    from .default import DEFAULTS, write_default_checkpoint
+
+    if str(cfg.ckpt) in DEFAULTS and not Path(str(cfg.ckpt)).exists():
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            cfg = dict(cfg)
+            cfg["ckpt"] = str(write_default_checkpoint(str(cfg["ckpt"]), tmp))
+            from omegaconf import OmegaConf
+
+            return export_main(OmegaConf.create(cfg))
     fmt = str(cfg.get("format", "torchscript"))
     if fmt not in FORMATS:
         raise ValueError(f"export: format={fmt!r}: expected one of {FORMATS}")

@@ -65,6 +65,12 @@ class BackboneGraph(nn.Module):
     def __init__(self, params: Sequence[float], use_mag: bool, ops):
         super().__init__()
         p = [float(v) for v in params]
+        if len(p) > K.P_REST_CHECK and p[K.P_REST_CHECK] > 0.5:
+            from .inputs import ExportError
+
+            raise ExportError("the causal device check (rest_check: the default, ckpt=default6/default9) is not in "
+                              "the ONNX / torch.export step graph yet: export it as format=c or torchscript, which "
+                              "run the kernel's own step")
         self.p, self.use_mag, self.T = p, bool(use_mag), ops
         # the coefficients' and gains' formulas: the kernel's own (kernels/backbone_gains.py), read
         # with this graph's ops table on (K,) tensors

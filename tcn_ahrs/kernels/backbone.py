@@ -38,7 +38,12 @@ from .backbone_layout import (  # noqa: F401 (the layout, read by the step as co
     C_MAG_A, C_KMAG, C_KMAGREF, C_P0, C_V, C_WM, C_WV, C_WR, DEG, EPS, initial_state, S_GPREV, S_GSAME_T, S_GSAME_N,
     S_GFROZEN, S_APREV, S_ASAME_T, S_ASAME_N, S_AFROZEN, P_FROZEN_T, FROZEN_MIN_SAMPLES, S_GMAX, S_GCLIPPED, S_AMAX,
     S_ACLIPPED, P_GCLIP_FLOOR, P_ACLIP_FLOOR, CLIP_MIN_REPEATS, S_TS_TYP, S_GAP, P_GAP_F, S_HEAD_RESTART, S_ADISTRUST,
-    S_MPREV, S_MSAME_T, S_MFROZEN, MAG_FROZEN_MIN_T, TS_TYP_RATE, TILT_MIN, TAU_FLOOR, CLIP_BRIDGE_VAR)
+    S_MPREV, S_MSAME_T, S_MFROZEN, MAG_FROZEN_MIN_T, TS_TYP_RATE, TILT_MIN, TAU_FLOOR, CLIP_BRIDGE_VAR, P_REST_CHECK, S_CHK,
+    # the causal check's (kernels/backbone_check.py: every translation reads the constants from here)
+    S_CK_N, S_CK_T, S_CK_DEAD, S_CK_GREF, S_CK_GS, S_CK_GQ, S_CK_AREF, S_CK_AS, S_CK_AQ, S_CK_FLOOR, S_CK_RUN,
+    S_CK_RUN_N, S_CK_RUN_G, S_CK_RUN_UP, CHECK_WINDOW, CHECK_NOISE_FACTOR, CHECK_MIN_WINDOWS, CHECK_TILT_DEG,
+    CHECK_CLIP)
+from . import backbone_check as _check_float
 from . import backbone_gains as _gains_float
 from . import quat as _quat
 from .ops import float_ops, load_kernel
@@ -56,6 +61,9 @@ PI = math.pi
 _gains = _gains_float if ops.name == "float" else load_kernel(_gains_float, ops)
 butter_terms, first_order_gain, bias_noise = _gains.butter_terms, _gains.first_order_gain, _gains.bias_noise
 wrap_pi, rejection_gain, initial_gain = _gains.wrap_pi, _gains.rejection_gain, _gains.initial_gain
+# the causal device check (kernels/backbone_check.py), in this table's reading
+_check = _check_float if ops.name == "float" else load_kernel(_check_float, ops)
+rest_check, check_window = _check.rest_check, _check.check_window
 # the quaternion product, rotation and matrix, the 3x3 product A Bᵀ of kernels/quat.py, in this table's reading
 qmul, qrot, qmat, mat3_mul_t = jit(_quat.qmul), jit(_quat.qrot), jit(_quat.qmat), jit(_quat.mat3_mul_t)
 
@@ -207,7 +215,8 @@ def gyro_update(s, p, c, gx, gy, gz):
         d0, d1, d2 = nograd(gx) - l0, nograd(gy) - l1, nograd(gz) - l2
         clip_ = p[P_CLIP] * DEG
         moving = either(frozen, either(d0 * d0 + d1 * d1 + d2 * d2 >= (p[P_REST_TH_G] * DEG) ** 2,
-                                       either(fabs(l0) > clip_, either(fabs(l1) > clip_, fabs(l2) > clip_))))
+                                       either(fabs(l0 - s[S_CHK]) > clip_,
+                                              either(fabs(l1 - s[S_CHK + 1]) > clip_, fabs(l2 - s[S_CHK + 2]) > clip_))))
         s[S_REST_T] = where(moving, 0.0 * l0, s[S_REST_T])
         s[S_REST] = where(moving, 0.0 * l0, s[S_REST])
         s[S_REST_G], s[S_REST_G + 1], s[S_REST_G + 2] = l0, l1, l2
@@ -242,6 +251,8 @@ def acc_update(s, p, c, ax, ay, az, acc_trust, bias_trust):
     # (:data:`CLIP_BRIDGE_VAR`): the gyro alone then bridges the clipping (BROAD's fast translation
     # at ±2 g after rest: 1.8° against VQF's 22.7° and raw integration's 8.4°); with the bias unknown
     # it would drift for the whole run (the running phones: 18.4° against VQF's 16.6°, up to 19.6° worse)
+    if p[P_REST_CHECK] > 0.5:
+        rest_check(s, p, ts)
     clipped = s[S_ACLIPPED] > 0.5
     known = fmax(s[S_P], fmax(s[S_P + 4], s[S_P + 8])) <= CLIP_BRIDGE_VAR * c[C_P0]
     wait = s[S_ADISTRUST]
@@ -346,10 +357,12 @@ def bias_update(s, p, c, v0, v1, bias_trust):
                                                    c12 / det, c20 / det, c21 / det, c22 / det)
     K00, K01, K02, K10, K11, K12, K20, K21, K22 = mat3_mul_t(A00, A01, A02, A10, A11, A12, A20, A21, A22,  # A (Cᵀ)ᵀ
                                                              c00, c10, c20, c01, c11, c21, c02, c12, c22)
-    # b <- clip(b + trust K e); the learned bias trust scales the increment (0: frozen)
-    nb0 = clip(b0 + bias_trust * (K00 * e0 + K01 * e1 + K02 * e2), -cl, cl)
-    nb1 = clip(b1 + bias_trust * (K10 * e0 + K11 * e1 + K12 * e2), -cl, cl)
-    nb2 = clip(b2 + bias_trust * (K20 * e0 + K21 * e1 + K22 * e2), -cl, cl)
+    # b <- clip(b + trust K e); the learned bias trust scales the increment (0: frozen); the clip is
+    # about the device check's bias (rest_check; 0 without it: VQF's clip about zero)
+    k0, k1, k2 = s[S_CHK], s[S_CHK + 1], s[S_CHK + 2]
+    nb0 = clip(b0 + bias_trust * (K00 * e0 + K01 * e1 + K02 * e2), k0 - cl, k0 + cl)
+    nb1 = clip(b1 + bias_trust * (K10 * e0 + K11 * e1 + K12 * e2), k1 - cl, k1 + cl)
+    nb2 = clip(b2 + bias_trust * (K20 * e0 + K21 * e1 + K22 * e2), k2 - cl, k2 + cl)
     # P <- P − K H P = P − K A^T
     N00, N01, N02, N10, N11, N12, N20, N21, N22 = mat3_mul_t(K00, K01, K02, K10, K11, K12, K20, K21, K22,
                                                              A00, A01, A02, A10, A11, A12, A20, A21, A22)

@@ -68,6 +68,12 @@ class BackboneParams:
     # the whole gap: a 2 s gap in walking, 52° error 10-20 s after, VQF on the resampled stream
     # 23°) and the low-pass filters hold over it; flagged `gap`; 0 switches the check off
     gap_factor: float = knob(4.0, "", "a step this many typical steps long is a gap; 0: off")
+    # the causal device check (not in VQF; 0: off, VQF's filter): the gyro bias read from the past's
+    # rests, judged by the signal's character (windows whose spread is within CHECK_NOISE_FACTOR x the
+    # quietest window so far, for CHECK_MIN_WINDOWS windows at a steady tilt), not by VQF's 2 °/s clip;
+    # VQF's own bias estimate then runs within bias_clip of it (kernels/backbone.py: rest_check)
+    rest_check: float = knob(0.0, "flag", "the causal device check: the gyro bias at rest from the past, "
+                             "beyond bias_clip; 0: off")
 
     def vector(self) -> Tuple[float, ...]:
         return tuple(float(v) for v in astuple(self))
@@ -104,7 +110,11 @@ STATE = _layout([("gyr_quat", 4), ("acc_quat", 4), ("delta", 1), ("rest", 1), ("
                  ("acc_prev", 3), ("acc_same_time", 1), ("acc_same_count", 1), ("acc_frozen", 1),
                  ("gyr_max_abs", 3), ("gyr_clip_run", 3), ("gyr_clipped", 1), ("acc_max_abs", 3), ("acc_clip_run", 3),
                  ("acc_clipped", 1), ("ts_typical", 1), ("gap", 1), ("heading_restart_in", 1),
-                 ("acc_distrust_in", 1), ("mag_prev", 3), ("mag_same_time", 1), ("mag_frozen", 1)]
+                 ("acc_distrust_in", 1), ("mag_prev", 3), ("mag_same_time", 1), ("mag_frozen", 1),
+                 ("check_bias", 3), ("check_count", 1), ("check_time", 1), ("check_dead", 1), ("check_gyr_ref", 3),
+                 ("check_gyr_sum", 3), ("check_gyr_sq", 3), ("check_acc_ref", 3), ("check_acc_sum", 3),
+                 ("check_acc_sq", 3), ("check_floor", 2), ("check_run", 1), ("check_run_count", 1),
+                 ("check_run_gyr", 3), ("check_run_up", 3)]
                 + [(n, 2 + 4 * d) for n, d in _FILTERS])
 COEFF = _layout([("ts", 1), ("acc_b", 3), ("acc_a", 2), ("rest_b", 3), ("rest_a", 2), ("mag_b", 3), ("mag_a", 2),
                  ("k_mag", 1), ("k_mag_ref", 1), ("bias_p0", 1), ("bias_v", 1), ("bias_motion_w", 1),
@@ -144,6 +154,22 @@ P_GCLIP_FLOOR, P_ACLIP_FLOOR = _P["gyro_clip_floor"], _P["acc_clip_floor"]
 S_TS_TYP, S_GAP, P_GAP_F, S_HEAD_RESTART = _S["ts_typical"], _S["gap"], _P["gap_factor"], _S["heading_restart_in"]
 S_ADISTRUST = _S["acc_distrust_in"]
 S_MPREV, S_MSAME_T, S_MFROZEN = _S["mag_prev"], _S["mag_same_time"], _S["mag_frozen"]
+P_REST_CHECK = _P["rest_check"]
+S_CHK, S_CK_N, S_CK_T, S_CK_DEAD = _S["check_bias"], _S["check_count"], _S["check_time"], _S["check_dead"]
+S_CK_GREF, S_CK_GS, S_CK_GQ = _S["check_gyr_ref"], _S["check_gyr_sum"], _S["check_gyr_sq"]
+S_CK_AREF, S_CK_AS, S_CK_AQ = _S["check_acc_ref"], _S["check_acc_sum"], _S["check_acc_sq"]
+S_CK_FLOOR, S_CK_RUN, S_CK_RUN_N = _S["check_floor"], _S["check_run"], _S["check_run_count"]
+S_CK_RUN_G, S_CK_RUN_UP = _S["check_run_gyr"], _S["check_run_up"]
+# the causal device check's settings, shared with the offline one (tcn_ahrs.device_check.DeviceCheckConfig
+# reads its defaults from here): one window, the quiet window's spread against the noise floor (the
+# quietest window so far), the windows in a row that make a rest, how far the specific force may turn
+# within it, and the largest bias it takes (a rest reading more is a steady turn, not a bias: consumer
+# MEMS gyros are specified to a few °/s; EuRoC's ADIS16448 reads 4.7 °/s, the iPhone 5 5.5 °/s)
+CHECK_WINDOW = 0.5         # s
+CHECK_NOISE_FACTOR = 2.5
+CHECK_MIN_WINDOWS = 3.0    # 1.5 s
+CHECK_TILT_DEG = 0.3       # °
+CHECK_CLIP = 10.0          # °/s
 MAG_FROZEN_MIN_T = 0.5  # s: a magnetometer repeats its readings exactly this long, at least, to be frozen
 # (slower than the IMU, a magnetometer's readings are held: a 10 Hz one in a 100 Hz stream repeats for 0.1 s;
 # the longest exact repeat in BROAD and OxIOD is 8 samples, 28 ms)
@@ -181,4 +207,5 @@ def initial_state(params: BackboneParams) -> List[float]:
         s[S_P + 4 * i] = p0
     s[S_MREJ_T] = params.mag_max_rejection_time
     s[S_MCAND_N] = -1.0
+    s[S_CK_FLOOR] = s[S_CK_FLOOR + 1] = -1.0  # no window seen yet
     return s

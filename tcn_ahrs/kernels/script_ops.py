@@ -22,12 +22,12 @@ from typing import Dict
 VECTORS = frozenset({"s", "p", "c"})          # state, parameters, coefficients: List[float]
 # flat indices and counts
 INTS = frozenset({"f", "d", "i", "at_b", "at_a", "prev", "same_t", "same_n", "flag", "maxabs", "clipflag"})
-BOOLS = frozenset({"run", "start", "use_mag", "held", "disturbed"})
+BOOLS = frozenset({"run", "start", "use_mag", "held", "disturbed", "done"})
 # modules of typed scalar kernels (annotated for TorchScript) an ops-table kernel may bind
 TYPED_MODULES = frozenset({"tcn_ahrs.kernels.quat"})
 # ops-table kernel modules whose @jit functions a kernel binds (``butter_terms = _gains.butter_terms``):
 # read as the binding module's own kernels (the formulas the exported vector graph shares)
-KERNEL_MODULES = frozenset({"tcn_ahrs.kernels.backbone_gains"})
+KERNEL_MODULES = frozenset({"tcn_ahrs.kernels.backbone_gains", "tcn_ahrs.kernels.backbone_check"})
 
 
 def bound_kernels(module: ModuleType):

@@ -28,7 +28,7 @@ BLOCK = 8
 # the kernels computed in double in every build (the low-pass filters and their coefficients;
 # helpers.h.in WREAL says why)
 WIDE_KERNELS = ("butter_terms", "first_order_gain", "bias_noise", "butter", "coefficients", "lp_begin", "lp", "lp_end",
-                "lp3", "wrap_pi", "rejection_gain", "initial_gain", "mag_update")
+                "lp3", "wrap_pi", "rejection_gain", "initial_gain", "mag_update", "rest_check", "check_window")
 
 
 def _network_arrays(model: nn.Module):
