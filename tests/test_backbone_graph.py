@@ -42,10 +42,11 @@ def _stream(axes: int, seed: int = 0, n: int = N):
     return imu, dt, rng.uniform(0.0, 1.5, (n, 3))
 
 
-def _compare(params: BackboneParams, axes: int, ops, seed: int = 0):
+def _compare(params: BackboneParams, axes: int, ops, seed: int = 0, gyro_bias_dps: float = 0.0):
     """-> (the worst |graph − kernel| / (1 + |kernel|) over the state and the samples, the kernel's
-    flags seen set / seen clear)."""
+    flags seen set / seen clear); ``gyro_bias_dps`` added to the gyro's z axis."""
     imu, dt, trust = _stream(axes, seed)
+    imu[:, 2] += np.radians(gyro_bias_dps)
     p = np.array(params.vector())
     s, c = np.array(K.initial_state(params)), np.zeros(K.N_COEFF)
     graph = BackboneGraph(params.vector(), axes == 9, ops)
@@ -70,6 +71,7 @@ def _compare(params: BackboneParams, axes: int, ops, seed: int = 0):
             worst = max(worst, float((np.abs(st.numpy() - s) / (1.0 + np.abs(s))).max()))
             for name, i in flags.items():
                 seen.setdefault(name, set()).add(bool(s[i] > 0.5))
+            seen.setdefault("check_took", set()).add(bool(s[K.S_CHK + 2] != 0.0))
     return worst, seen
 
 
@@ -97,3 +99,12 @@ def test_the_onnx_reading_keeps_float64():
     """ONNX Runtime's float64 atan2 (a float32 one refined once: stateless.onnx_ops) changes nothing."""
     worst, _ = _compare(BackboneParams(), 9, onnx_ops(), seed=2)
     assert worst <= BOUND, worst
+
+
+@pytest.mark.parametrize("axes", [9, 6])
+def test_the_vector_step_is_the_kernel_with_the_causal_check(axes):
+    """The default's causal device check (rest_check; export/check_graph.py) on the same paths, with a
+    4 °/s gyro bias about z it takes from the recording's rest (beyond VQF's clip)."""
+    worst, seen = _compare(BackboneParams(rest_check=1.0), axes, torch_ops(), seed=3, gyro_bias_dps=4.0)
+    assert worst <= BOUND, worst
+    assert seen["check_took"] == {True, False}, seen

@@ -2,8 +2,8 @@
 ``tcn-ahrs evaluate``): the gyro bias of each rest so far, judged by the signal's character as the
 offline check (tcn_ahrs.device_check) judges it but from the past only, taken where it lies beyond
 VQF's clip. The future never changes the past; EuRoC's start-up rest gives its 4.4 °/s bias (VQF
-never rests there); a frozen accelerometer is not rest; the C runtime of ``tcn-ahrs export
-ckpt=default6 format=c`` gives what ``evaluate``'s default gives on a real EuRoC recording."""
+never rests there); a frozen accelerometer is not rest; the C, ONNX and TorchScript exports of ``tcn-ahrs export
+ckpt=default6`` give what ``evaluate``'s default gives on a real EuRoC recording."""
 from __future__ import annotations
 
 import shutil
@@ -142,17 +142,21 @@ def test_the_exported_c_default_equals_evaluates_default_on_euroc(tmp_path):
         assert _angle(out[:, :4].astype(np.float64), ref).max() < tol, real
 
 
-def test_the_onnx_graph_refuses_the_default_until_it_runs_the_check(tmp_path):
-    """The ONNX / torch.export step graph (export/backbone_graph.py) does not run the causal check: it
-    refuses the default by name rather than export another filter."""
+def test_the_onnx_default_equals_evaluates_default_on_euroc(tmp_path):
+    """``tcn-ahrs export ckpt=default6 format=onnx`` (the step graph reads the check on vectors:
+    export/check_graph.py): the batch graph on onnxruntime over V1_02's first 20 s (its start-up rest
+    taken) within 1e-6 rad of ``evaluate``'s default."""
+    pytest.importorskip("onnxruntime")
     from tcn_ahrs.cli import main
-    from tcn_ahrs.export.inputs import ExportError
+    from tcn_ahrs.export.onnx_step import OnnxBatch
 
-    pytest.importorskip("onnx")
-    with pytest.raises((ExportError, SystemExit)) as e:
-        main(["export", "ckpt=default6", "format=onnx", f"out={tmp_path / 'd.onnx'}"])
-    assert not (tmp_path / "d.onnx").exists()
-    assert e.type is SystemExit or "causal device check" in str(e.value)
+    seq = _euroc("V1_02_medium")
+    part = seq.slice(0, int(20 * seq.rate))
+    main(["export", "ckpt=default6", "mode=batch", "format=onnx", f"out={tmp_path / 'default6.onnx'}"])
+    q, _ = OnnxBatch(tmp_path / "default6.onnx").run(np.concatenate([part.gyro, part.accel], 1), part.dt,
+                                                      part.quat[0])
+    ref = np.asarray(default(6).run(part, part.quat[0], 0).quat)
+    assert _angle(np.asarray(q, dtype=np.float64), ref).max() < 1e-6
 
 
 def test_the_torchscript_default_equals_evaluates_default_on_euroc(tmp_path):

@@ -36,6 +36,7 @@ from ..kernels import backbone as K
 from ..kernels import backbone_gains
 from ..kernels.backbone_layout import BackboneParams
 from ..kernels.ops import load_kernel
+from .check_graph import CHECK_PART, SUMS, check_step
 from .classical_step import hamilton, quat_product, rotation_matrix, rotation_rows
 from .graph_state import HEALTH_INDEX, MAG_SCALARS, Writes, filter_index, plan_buffers
 
@@ -65,12 +66,6 @@ class BackboneGraph(nn.Module):
     def __init__(self, params: Sequence[float], use_mag: bool, ops):
         super().__init__()
         p = [float(v) for v in params]
-        if len(p) > K.P_REST_CHECK and p[K.P_REST_CHECK] > 0.5:
-            from .inputs import ExportError
-
-            raise ExportError("the causal device check (rest_check: the default, ckpt=default6/default9) is not in "
-                              "the ONNX / torch.export step graph yet: export it as format=c or torchscript, which "
-                              "run the kernel's own step")
         self.p, self.use_mag, self.T = p, bool(use_mag), ops
         # the coefficients' and gains' formulas: the kernel's own (kernels/backbone_gains.py), read
         # with this graph's ops table on (K,) tensors
@@ -82,6 +77,8 @@ class BackboneGraph(nn.Module):
         self.mag_rej = p[K.P_MAG_REJ] > 0.5
         self.motion = p[K.P_MOTION_BIAS] > 0.5
         self.rest_gyro = self.rest_bias or self.mag_rej
+        self.check = p[K.P_REST_CHECK] > 0.5   # the causal device check (export/check_graph.py)
+        self.register_buffer("check_sums", torch.tensor(SUMS))
         self.bias = self.motion or self.rest_bias
         self.mag_lp = self.use_mag and self.mag_rej and p[K.P_MAG_CUR_TAU] > 0.0
         ham = hamilton().permute(0, 2, 1).reshape(16, 4)   # (ham @ p).reshape(4, 4) @ q = p ⊗ q
@@ -265,13 +262,14 @@ class BackboneGraph(nn.Module):
         kminit = torch.where((wait0 > 0.0) & (wait <= 0.0), 1.0, kminit)
         w.add([K.S_TS_TYP, K.S_GAP, K.S_HEAD_RESTART], torch.stack([ts_typ, gapf, wait]))
         rest_g = s[K.S_REST_G:K.S_REST_G + 3]
+        chk = s[K.S_CHK:K.S_CHK + 3]   # the check's bias (0 without it): VQF's clips about it
         if self.rest_gyro:
             lx = torch.cat([gyro, acc]) if self.rest_bias else gyro
             lr = self.lowpass("rest", s, lx, rows, dt, gap, w)
             rest_g = lr[0:3]
             dg = gyro - rest_g
             clip = p[K.P_CLIP] * K.DEG
-            moving = frozen_g | ((dg * dg).sum() >= (p[K.P_REST_TH_G] * K.DEG) ** 2) | (torch.abs(rest_g) > clip).any()
+            moving = frozen_g | ((dg * dg).sum() >= (p[K.P_REST_TH_G] * K.DEG) ** 2) | (torch.abs(rest_g - chk) > clip).any()
             rest_t = torch.where(moving, 0.0, rest_t)
             rest = torch.where(moving, 0.0, rest)
             w.add([K.S_REST_G + i for i in range(3)], rest_g)
@@ -294,6 +292,11 @@ class BackboneGraph(nn.Module):
         distrust = frozen_a | clipped[1] | (wait_a > 0.0)
         acc_trust = torch.where(distrust, 0.0, acc_trust)
         bias_trust = torch.where(distrust | frozen_g, 0.0, bias_trust)
+        if self.check:
+            values, take, b_check = check_step(s, self.check_sums, gyro, acc, frozen, clipped, dt, p[K.P_CLIP] * K.DEG)
+            w.add(CHECK_PART, values)
+            bias = torch.where(take, b_check, bias)   # what the bias update goes on from (kernel: check_window)
+            chk = values[0:3]
         rest1, rest_t1 = rest, rest_t
         if self.rest_bias:
             da = acc - lr[3:6]
@@ -339,7 +342,7 @@ class BackboneGraph(nn.Module):
         if att_x:
             ya = self.lowpass("att", s, torch.cat(att_x), rows, dt, gap, w)
         if self.bias:
-            self._bias_update(s, ya[0:9].reshape(3, 3), ya[9:11], bias, v, rest, rest_g, bias_trust, bias_c, dt, w)
+            self._bias_update(s, ya[0:9].reshape(3, 3), ya[9:11], bias, chk, v, rest, rest_g, bias_trust, bias_c, dt, w)
         w.add([K.S_REST, K.S_REST_T], torch.where(skip_acc, torch.stack([rest1, rest_t1]), torch.stack([rest, rest_t])),
               )
         if self.use_mag:
@@ -364,9 +367,10 @@ class BackboneGraph(nn.Module):
         self.plan = list(idx)
         self.write_index, self.write_acc, self.write_mag, self.write_perm = plan_buffers(idx)
 
-    def _bias_update(self, s, h, bl, b, v, rest, rest_g, bias_trust, bias_c, dt, w) -> None:
+    def _bias_update(self, s, h, bl, b, chk, v, rest, rest_g, bias_trust, bias_c, dt, w) -> None:
         """Sec. 3.4 (kernel: bias_update) on (3, 3) tensors: h the low-passed attitude matrix, bl
-        the low-passed (R b)_xy, b the bias, v the accelerometer's direction in E_i."""
+        the low-passed (R b)_xy, b the bias, chk the check's bias (the clip's centre), v the
+        accelerometer's direction in E_i."""
         p = self.p
         at_rest = (rest > 0.5) if self.rest_bias else self.false
         # the residual e = y − H b: in motion y = [−v_y, v_x, 0]/ts + [bl, 0], H = h; at rest y = the
@@ -387,7 +391,7 @@ class BackboneGraph(nn.Module):
         C = S9[self.cof[0]] * S9[self.cof[1]] - S9[self.cof[2]] * S9[self.cof[3]]
         det = (S[0] * C[0]).sum()
         Kg = A @ (C.T / det)
-        nb = torch.clamp(b + bias_trust * (Kg @ e), -cl, cl)
+        nb = torch.minimum(torch.maximum(b + bias_trust * (Kg @ e), chk - cl), chk + cl)
         N = P - Kg @ A.T
         if not self.motion:
             nb, N = torch.where(at_rest, nb, b), torch.where(at_rest, N, P)

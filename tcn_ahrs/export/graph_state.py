@@ -37,7 +37,8 @@ def _group(f: int, d: int) -> List[int]:
 # (rest, rest time and k_mag_init, which the gyro's update writes too, are chosen where they are computed)
 ACC_PART = set(_group(K.F_RA, 3) + _group(K.F_ACC, 3) + _group(K.F_ROT, 9) + _group(K.F_BIAS, 2) + HEALTH_INDEX[1]
                 + [K.S_ADISTRUST]
-                + list(range(K.S_AQ, K.S_AQ + 4)) + list(range(K.S_BIAS, K.S_BIAS + 3)) + list(range(K.S_P, K.S_P + 9)))
+                + list(range(K.S_AQ, K.S_AQ + 4)) + list(range(K.S_BIAS, K.S_BIAS + 3)) + list(range(K.S_P, K.S_P + 9))
+                + list(range(K.S_CHK, K.S_CHK + 3)) + list(range(K.S_CK_N, K.S_CK_RUN_UP + 3)))  # the causal check
 MAG_PART = set(_group(K.F_MAG, 2) + [K.S_MREF_N, K.S_MREF_D, K.S_MAGDIST, K.S_MUND_T, K.S_MCAND_T, K.S_MCAND_N,
                                       K.S_MCAND_D, K.S_MREJ_T, K.S_DELTA, K.S_MSAME_T, K.S_MFROZEN]
                + [K.S_MPREV + i for i in range(3)])
