@@ -284,21 +284,25 @@ def test_the_search_trains_a_learned_candidate_in_its_folds_and_resumes(tmp_path
         c = rec["candidates"][name]
         assert c["calibration"] == "learned" and len(c["inner_val_recordings"][0]) >= 1
         assert rec["test"][name]["aae_deg"] > 0  # scored on the outer fold like every candidate
-        run = out / "learn" / f"fold{rec['fold']}" / "finetune"
-        cfg = (run / "config_resolved.yaml").read_text()
-        assert (run / "TRAINED").is_file()
+        # cross-fitted: epoch and knobs chosen on each half of the validation recordings (one half for one)
+        runs = sorted((out / "learn" / f"fold{rec['fold']}" / "finetune").glob("chosen_on_half*"))
+        assert len(runs) == min(2, len(c["inner_val_recordings"][0]))
+        for run in runs:
+            cfg = (run / "config_resolved.yaml").read_text()
+            assert (run / "TRAINED").is_file()
+            assert "max_time: 00:00:" in cfg  # the budget's cap
         line = next(x for x in printed.splitlines() if f"fold {rec['fold']}: training {name} on" in x)
-        trained_on = line.split(" on ", 1)[1].split(", validated on")[0]
+        trained_on = line.split(" on ", 1)[1].split(", epoch and knobs chosen on")[0]
         assert not any(r in trained_on for r in rec["recordings"])  # the outer fold's recordings train nothing
-        assert "max_time: 00:00:" in cfg  # the budget's cap
     assert "trained in each of 3 outer folds" in printed and "budget 6 min" in printed
     assert "[search 100%" in printed  # the bar (a line per 10 % where stderr is no terminal)
     assert "== search summary" in printed and "expected on new recordings of this device:" in printed
     assert res["expected_gain"]["n"] == 3
-    stamps = {p: p.stat().st_mtime for p in out.glob("learn/fold*/finetune/TRAINED")}
+    stamps = {p: p.stat().st_mtime for p in out.glob("learn/fold*/finetune/*/TRAINED")}
+    assert len(stamps) >= 3
     main(args)  # resumed: records and trainings read, nothing trained again
     again = json.loads((out / "search.json").read_text())
-    assert {p: p.stat().st_mtime for p in out.glob("learn/fold*/finetune/TRAINED")} == stamps
+    assert {p: p.stat().st_mtime for p in out.glob("learn/fold*/finetune/*/TRAINED")} == stamps
     assert [r["aae_deg"] for r in again["rows"]] == [r["aae_deg"] for r in res["rows"]]
 
 
@@ -481,6 +485,42 @@ def test_no_learned_candidate_starts_from_weights_that_saw_the_outer_fold(tmp_pa
     for dataset, axes in (("broad", 9), ("oxiod", 9), ("tumvi", 6)):
         assert learn.starting_leak("finetune", axes, dataset)
     assert learn.starting_leak("finetune", 9, "generic") is None and learn.starting_leak("closed_loop", 6, "euroc") is None
+
+
+def test_the_adoption_reads_recordings_that_chose_nothing(tmp_path, monkeypatch):
+    """A learned candidate's epoch and inference knobs are chosen on validation recordings; its
+    adoption test read its scores on those same recordings (optimistic: crossval's own comment
+    measured 1.77 against 3.15). Cross-fitted now: each validation recording is run by a model whose
+    epoch and knobs were chosen on the other recordings only, both trained on the same training ones."""
+    from types import SimpleNamespace
+
+    from tcn_ahrs.experiments.search import learn
+    from tcn_ahrs.experiments.search.progress import Budget
+
+    trained = []
+
+    def fake_train(recipe, run_dir, train, val, data_args, axes, minutes, seed=0):
+        trained.append(([s.name for s in train], [s.name for s in val]))
+        return [s.name for s in val]          # the "checkpoint": what chose its epoch and knobs
+
+    class Stub:
+        def __init__(self, chose, name):
+            self.chose, self.name, self.ckpt_path = chose, name, None
+
+        def run(self, seq, init_quat=None, init_index=0):
+            return self.chose
+
+    monkeypatch.setattr(learn, "train_recipe", fake_train)
+    monkeypatch.setattr(learn, "learned_estimator", lambda path, name: Stub(path, name))
+    train = [SimpleNamespace(name=f"t{i}") for i in range(4)]
+    val = [SimpleNamespace(name=f"v{i}") for i in range(5)]
+    got = learn.train_fold_candidates(["closed_loop"], tmp_path, 0, train, val, ["data=generic"], 6, Budget(None, 2, 1),
+                                      log=lambda s: None)
+    cand = got[learn.candidate_name("closed_loop")]
+    for s in val:
+        assert s.name not in cand.run(s), (s.name, cand.run(s))   # never scored by what it tuned
+    assert all(tr == [s.name for s in train] for tr, _ in trained)  # every model on the same training recordings
+    assert sorted(sum((v for _, v in trained), [])) == sorted(s.name for s in val)
 
 
 def test_a_candidates_real_error_is_raised_not_scored_as_diverged():

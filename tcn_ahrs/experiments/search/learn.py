@@ -150,27 +150,60 @@ def learned_estimator(path, name: str):
     return Calibrated(est, RestBiasCalibration(), name=name) if layout.get("device_check") else est
 
 
+class CrossFitted:
+    """A learned candidate scored on recordings that chose nothing: trained twice on the same inner
+    training recordings, its epoch and inference knobs chosen once on each half of the validation
+    recordings (:func:`halves`); each validation recording is run by the model the *other* half chose
+    (so the adoption test, :func:`gain_supported`, reads no recording that tuned what it tests), any
+    other recording (the outer fold's) by the first. Otherwise the estimator it wraps."""
+
+    def __init__(self, by_recording: Dict[str, Any], outer, name: str):
+        self.by_recording, self.outer, self.name = dict(by_recording), outer, name
+
+    def run(self, seq: ImuSequence, init_quat=None, init_index: int = 0):
+        return self.by_recording.get(seq.name, self.outer).run(seq, init_quat, init_index)
+
+    def __getattr__(self, key):   # axes, ckpt_path, heading_free, ...: the outer model's
+        if key in ("by_recording", "outer", "name"):
+            raise AttributeError(key)
+        return getattr(self.outer, key)
+
+
+def halves(val: Sequence[ImuSequence]) -> List[List[ImuSequence]]:
+    """The validation recordings in two halves (alternating; one half where there is one recording)."""
+    return [list(val[0::2]), list(val[1::2])] if len(val) >= 2 else [list(val)]
+
+
 def train_fold_candidates(recipes: Sequence[str], out: Path, fold: int, train: Sequence[ImuSequence],
                           val: Sequence[ImuSequence], data_args: Sequence[str], axes: int, budget,
                           log=print, progress=lambda name: None) -> Dict[str, Any]:
     """Every recipe of ``recipes`` trained (or reused) for outer fold ``fold`` on one inner split,
-    each capped by ``budget.training()`` (:class:`~tcn_ahrs.experiments.search.progress.Budget`).
-    Returns ``{candidate name: estimator}``; a recipe that fails to train is left out, and said."""
+    cross-fitted (:class:`CrossFitted`: two trainings, each choosing its epoch / knobs on one half of
+    ``val``), each training capped by ``budget.training()``
+    (:class:`~tcn_ahrs.experiments.search.progress.Budget`). Returns ``{candidate name: estimator}``;
+    a recipe that fails to train is left out, and said."""
     out_est: Dict[str, Any] = {}
+    parts = halves(val)
     for recipe in recipes:
         name = candidate_name(recipe)
-        run_dir = Path(out) / "learn" / f"fold{fold}" / recipe
-        with budget.training() as minutes:
-            cap = "" if minutes is None else f" (at most {minutes:.1f} min)"
-            log(f"   fold {fold}: training {name} on {[s.name for s in train]}, validated on "
-                f"{[s.name for s in val]}{cap}: {run_dir}")
-            try:
-                best = train_recipe(recipe, run_dir, train, val, data_args, axes, minutes)
-            except (ValueError, RuntimeError, FileNotFoundError) as e:  # e.g. no general model for these axes
-                log(f"   fold {fold}: {name} left out: {e}")
-                progress(f"{name} failed")
-                continue
-        out_est[name] = learned_estimator(best, name)
+        models = []
+        for h, chooses in enumerate(parts):
+            run_dir = Path(out) / "learn" / f"fold{fold}" / recipe / f"chosen_on_half{h}"
+            with budget.training() as minutes:
+                cap = "" if minutes is None else f" (at most {minutes:.1f} min)"
+                log(f"   fold {fold}: training {name} on {[s.name for s in train]}, epoch and knobs chosen on "
+                    f"{[s.name for s in chooses]}{cap}: {run_dir}")
+                try:
+                    models.append(train_recipe(recipe, run_dir, train, chooses, data_args, axes, minutes))
+                except (ValueError, RuntimeError, FileNotFoundError) as e:  # e.g. no general model for these axes
+                    log(f"   fold {fold}: {name} left out: {e}")
+                    progress(f"{name} failed")
+                    break
+        if len(models) < len(parts):
+            continue
+        ests = [learned_estimator(m, name) for m in models]
+        by_rec = {s.name: ests[len(parts) - 1 - h] for h, part in enumerate(parts) for s in part}
+        out_est[name] = CrossFitted(by_rec, ests[0], name)
         progress(name)
     return out_est
 
