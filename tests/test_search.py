@@ -487,6 +487,42 @@ def test_no_learned_candidate_starts_from_weights_that_saw_the_outer_fold(tmp_pa
     assert learn.starting_leak("finetune", 9, "generic") is None and learn.starting_leak("closed_loop", 6, "euroc") is None
 
 
+def test_a_leaking_recipe_starts_from_the_general_model_trained_without_the_data(tmp_path, monkeypatch):
+    """Where the shipped starting model saw the search's dataset, the recipe starts from the general
+    model trained without it (``tcn-ahrs benchmark lodo``'s run, ``search.lodo_runs``): its resolved
+    config must leave that dataset out; one that left out another dataset is not taken."""
+    from tcn_ahrs.experiments.search import learn
+    from tcn_ahrs.training import run as training_run
+
+    seen = []
+
+    def fake_train(cfg, train_seqs=None, val_seqs=None, overrides=()):
+        seen.append(list(overrides))
+        ck = tmp_path / "trained.ckpt"
+        ck.write_text("")
+        return {"best": str(ck)}
+
+    monkeypatch.setattr(training_run, "train_main", fake_train)
+    for left in ("broad", "euroc"):
+        run = tmp_path / "lodo" / "euroc"
+        (run / "checkpoints").mkdir(parents=True, exist_ok=True)
+        (run / "checkpoints" / "last.ckpt").write_text("")
+        (run / "knobs.json").write_text("{}")
+        (run / "config_resolved.yaml").write_text(f"data:\n  leave_out: {left}\n")
+        args = ["data=euroc", "data.axes=6", "data.fold=null"]
+        (tmp_path / f"r_{left}").mkdir()
+        if left != "euroc":
+            with pytest.raises(ValueError, match="none found in"):
+                learn.train_recipe("finetune", tmp_path / f"r_{left}", [], [], args, 6, 1.0,
+                                   lodo_runs={"6": str(tmp_path / "lodo")})
+            assert not seen
+        else:
+            learn.train_recipe("finetune", tmp_path / f"r_{left}", [], [], args, 6, 1.0,
+                               lodo_runs={"6": str(tmp_path / "lodo")})
+            assert f"init={run / 'checkpoints' / 'last.ckpt'}" in seen[0]
+            assert not any("general6_residual" in a for a in seen[0])
+
+
 def test_the_adoption_reads_recordings_that_chose_nothing(tmp_path, monkeypatch):
     """A learned candidate's epoch and inference knobs are chosen on validation recordings; its
     adoption test read its scores on those same recordings (optimistic: crossval's own comment
@@ -499,7 +535,7 @@ def test_the_adoption_reads_recordings_that_chose_nothing(tmp_path, monkeypatch)
 
     trained = []
 
-    def fake_train(recipe, run_dir, train, val, data_args, axes, minutes, seed=0):
+    def fake_train(recipe, run_dir, train, val, data_args, axes, minutes, seed=0, **kw):
         trained.append(([s.name for s in train], [s.name for s in val]))
         return [s.name for s in val]          # the "checkpoint": what chose its epoch and knobs
 

@@ -139,6 +139,9 @@ class SearchSection:
     learn: List[str] = field(default_factory=lambda: ["finetune", "residual", "closed_loop"])  # learned recipes
                                        # trained inside the folds (tcn_ahrs.experiments.search.learn.RECIPES)
     budget_minutes: Optional[float] = 60.0  # the whole search's compute; the trainings share what the classical part leaves
+    # {axes: folder} of the general models trained without each dataset (tcn-ahrs benchmark lodo): a recipe
+    # whose shipped starting model saw the search's data starts from <folder>/<data> instead (else left out)
+    lodo_runs: Dict[str, str] = field(default_factory=lambda: {"6": "runs/lodo", "9": "runs/lodo9"})
     learned: Optional[Dict[str, str]] = None  # {family: crossval folder}: its fold checkpoints are candidates
     learned_checkpoint: str = "last"   # last (end of schedule: unbiased on the inner fold) | selected
     trials: int = 40                   # Optuna trials per family x calibration and fold (the defaults first)

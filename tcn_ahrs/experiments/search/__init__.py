@@ -121,7 +121,8 @@ def search_main(cfg) -> Dict[str, Any]:
                     t_learn = time.perf_counter()
                     learned.update(train_fold_candidates(learn, out, i, tr, va, data_overrides(cfg.data, axes), axes,
                                                          budget, log=bar.write,
-                                                         progress=lambda name: bar.step(f"fold {i}: {name} trained")))
+                                                         progress=lambda name: bar.step(f"fold {i}: {name} trained"),
+                                                         lodo_runs=_lodo_runs(sc)))
                 rec = search_fold(i, d["splits"], d["others"], d["test"], axes, families, calibs, int(sc.trials), seed,
                                   storage, learned, d["learned_split"], float(sc.tie_margin), float(sc.incl_margin),
                                   tune_seconds=sc.get("tune_seconds"), log=bar.write,
@@ -169,6 +170,12 @@ def search_main(cfg) -> Dict[str, Any]:
         print(f"WARNING: {budget.overrun()}")
     print(final_summary(result, out))
     return result
+
+
+def _lodo_runs(sc) -> Dict[str, str]:
+    """``search.lodo_runs`` as {axes: folder} (where a recipe whose starting model saw the data finds
+    the general model trained without it)."""
+    return {str(k): str(v) for k, v in dict(sc.get("lodo_runs") or {}).items()}
 
 
 def skipped(sc: Dict[str, Any], n_folds: int) -> List[str]:
@@ -277,7 +284,7 @@ def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict
 
     with (budget.training() if budget is not None else nullcontext(None)) as minutes:
         best = train_recipe(recipe, out / "learn" / "release" / recipe, train, val, data_overrides(cfg.data, axes),
-                            axes, minutes)
+                            axes, minutes, lodo_runs=_lodo_runs(cfg.search))
     path = out / "release.ckpt"
     tmp = path.with_name(path.name + ".partial")
     shutil.copyfile(best, tmp)

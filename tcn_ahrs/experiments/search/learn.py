@@ -107,24 +107,44 @@ def starting_leak(recipe: str, axes: int, dataset: str) -> Optional[str]:
             f"{dataset}, `tcn-ahrs benchmark lodo`, would start it leak-free)")
 
 
+def start_without(dataset: str, axes: int, lodo_runs: Optional[Dict[str, str]]) -> Optional[Path]:
+    """The general model for ``axes`` trained without ``dataset`` (``tcn-ahrs benchmark lodo``'s run in
+    ``lodo_runs[str(axes)]/<dataset>``: finished, its knobs chosen, its resolved config leaving
+    ``dataset`` out), or None."""
+    from omegaconf import OmegaConf
+
+    folder = Path(str((lodo_runs or {}).get(str(axes), ""))) / dataset
+    ckpt, cfg = folder / "checkpoints" / "last.ckpt", folder / "config_resolved.yaml"
+    if not (lodo_runs and ckpt.is_file() and cfg.is_file() and (folder / "knobs.json").is_file()):
+        return None
+    left = OmegaConf.to_container(OmegaConf.load(cfg), resolve=False).get("data", {}).get("leave_out")
+    return ckpt if dataset in ([left] if isinstance(left, str) else list(left or [])) else None
+
+
 def train_recipe(recipe: str, run_dir: Path, train: Sequence[ImuSequence], val: Sequence[ImuSequence],
-                 data_args: Sequence[str], axes: int, minutes: Optional[float], seed: int = 0) -> Path:
+                 data_args: Sequence[str], axes: int, minutes: Optional[float], seed: int = 0,
+                 lodo_runs: Optional[Dict[str, str]] = None) -> Path:
     """Train ``recipe`` on ``train`` (its epoch / inference knobs chosen on ``val``) in ``run_dir``,
     or reuse the finished run there; returns the checkpoint that ships. ``minutes``: its time cap
-    (an unfinished run there continues from its ``last.ckpt``). ValueError where its starting
-    weights saw the search's dataset (:func:`starting_leak`)."""
+    (an unfinished run there continues from its ``last.ckpt``). Where its starting weights saw the
+    search's dataset (:func:`starting_leak`) it starts from the general model trained without it
+    (:func:`start_without`, ``search.lodo_runs``), else ValueError."""
     from ..lodo import compose_train
     from ...training.run import train_main
 
     dataset = next((a.split("=", 1)[1] for a in data_args if a.startswith("data=")), "")
+    args = [a.format(axes=axes, shipped=SHIPPED_DIR) for a in RECIPES[recipe][1]] + list(data_args)
     leak = starting_leak(recipe, axes, dataset)
     if leak:
-        raise ValueError(leak)
+        clean = start_without(dataset, axes, lodo_runs)
+        if clean is None:
+            where = (lodo_runs or {}).get(str(axes))
+            raise ValueError(leak + (f"; none found in {where}/{dataset}" if where else ""))
+        args = [f"init={clean}" if a.startswith("init=") else a for a in args]
     run_dir = Path(run_dir)
     done = run_dir / "TRAINED"
     if done.is_file():
         return Path(done.read_text().strip())
-    args = [a.format(axes=axes, shipped=SHIPPED_DIR) for a in RECIPES[recipe][1]] + list(data_args)
     # Lightning's accelerator is "auto": a GPU trains when there is one; its bar would break the search's
     args += [f"run_dir={run_dir}", "eval.enabled=false", f"seed={seed}", f"train.max_time={_max_time(minutes)}",
              "trainer.enable_progress_bar=false"]
@@ -176,7 +196,8 @@ def halves(val: Sequence[ImuSequence]) -> List[List[ImuSequence]]:
 
 def train_fold_candidates(recipes: Sequence[str], out: Path, fold: int, train: Sequence[ImuSequence],
                           val: Sequence[ImuSequence], data_args: Sequence[str], axes: int, budget,
-                          log=print, progress=lambda name: None) -> Dict[str, Any]:
+                          log=print, progress=lambda name: None,
+                          lodo_runs: Optional[Dict[str, str]] = None) -> Dict[str, Any]:
     """Every recipe of ``recipes`` trained (or reused) for outer fold ``fold`` on one inner split,
     cross-fitted (:class:`CrossFitted`: two trainings, each choosing its epoch / knobs on one half of
     ``val``), each training capped by ``budget.training()``
@@ -194,7 +215,8 @@ def train_fold_candidates(recipes: Sequence[str], out: Path, fold: int, train: S
                 log(f"   fold {fold}: training {name} on {[s.name for s in train]}, epoch and knobs chosen on "
                     f"{[s.name for s in chooses]}{cap}: {run_dir}")
                 try:
-                    models.append(train_recipe(recipe, run_dir, train, chooses, data_args, axes, minutes))
+                    models.append(train_recipe(recipe, run_dir, train, chooses, data_args, axes, minutes,
+                                               lodo_runs=lodo_runs))
                 except (ValueError, RuntimeError, FileNotFoundError) as e:  # e.g. no general model for these axes
                     log(f"   fold {fold}: {name} left out: {e}")
                     progress(f"{name} failed")
