@@ -36,7 +36,7 @@ from ..kernels import backbone as K
 from ..kernels import backbone_gains
 from ..kernels.backbone_layout import BackboneParams
 from ..kernels.ops import load_kernel
-from .check_graph import CHECK_PART, SUMS, check_step
+from .check_graph import SUMS, check_step
 from .classical_step import hamilton, quat_product, rotation_matrix, rotation_rows
 from .graph_state import HEALTH_INDEX, MAG_SCALARS, Writes, filter_index, plan_buffers
 
@@ -261,8 +261,7 @@ class BackboneGraph(nn.Module):
                            torch.where(wait0 > 0.0, wait0 - dt, wait0))
         kminit = torch.where((wait0 > 0.0) & (wait <= 0.0), 1.0, kminit)
         w.add([K.S_TS_TYP, K.S_GAP, K.S_HEAD_RESTART], torch.stack([ts_typ, gapf, wait]))
-        rest_g = s[K.S_REST_G:K.S_REST_G + 3]
-        chk = s[K.S_CHK:K.S_CHK + 3]   # the check's bias (0 without it): VQF's clips about it
+        rest_g, chk = s[K.S_REST_G:K.S_REST_G + 3], s[K.S_CHK:K.S_CHK + 3]  # chk: the check's bias (0 without it)
         if self.rest_gyro:
             lx = torch.cat([gyro, acc]) if self.rest_bias else gyro
             lr = self.lowpass("rest", s, lx, rows, dt, gap, w)
@@ -270,8 +269,7 @@ class BackboneGraph(nn.Module):
             dg = gyro - rest_g
             clip = p[K.P_CLIP] * K.DEG
             moving = frozen_g | ((dg * dg).sum() >= (p[K.P_REST_TH_G] * K.DEG) ** 2) | (torch.abs(rest_g - chk) > clip).any()
-            rest_t = torch.where(moving, 0.0, rest_t)
-            rest = torch.where(moving, 0.0, rest)
+            rest_t, rest = torch.where(moving, 0.0, rest_t), torch.where(moving, 0.0, rest)
             w.add([K.S_REST_G + i for i in range(3)], rest_g)
         bias = s[K.S_BIAS:K.S_BIAS + 3]
         om = torch.where(gap, 0.5 * (gyro + prev_g), gyro) - bias
@@ -292,11 +290,8 @@ class BackboneGraph(nn.Module):
         distrust = frozen_a | clipped[1] | (wait_a > 0.0)
         acc_trust = torch.where(distrust, 0.0, acc_trust)
         bias_trust = torch.where(distrust | frozen_g, 0.0, bias_trust)
-        if self.check:
-            values, take, b_check = check_step(s, self.check_sums, gyro, acc, frozen, clipped, dt, p[K.P_CLIP] * K.DEG)
-            w.add(CHECK_PART, values)
-            bias = torch.where(take, b_check, bias)   # what the bias update goes on from (kernel: check_window)
-            chk = values[0:3]
+        if self.check:   # the bias update goes on from the check's (kernel: check_window)
+            bias, chk = check_step(s, self.check_sums, gyro, acc, frozen, clipped, dt, p[K.P_CLIP] * K.DEG, bias, w)
         rest1, rest_t1 = rest, rest_t
         if self.rest_bias:
             da = acc - lr[3:6]

@@ -21,11 +21,12 @@ CHECK_PART = [K.S_CHK + i for i in range(3)] + [K.S_CK_N, K.S_CK_T, K.S_CK_DEAD]
 
 
 def check_step(s: Tensor, sums_index: Tensor, gyro: Tensor, acc: Tensor, frozen: Tensor, clipped: Tensor, dt: Tensor,
-               vqf_clip: float) -> Tuple[Tensor, Tensor, Tensor]:
+               vqf_clip: float, bias: Tensor, writes) -> Tuple[Tensor, Tensor]:
     """One sample of the check: ``sums_index`` :data:`SUMS` as a buffer of the calling module (a graph
     inside a scan cannot build tensors); gyro, acc (3,) as read; frozen, clipped (2,) the health flags
-    of this sample; ``vqf_clip`` rad/s. -> (the new values of :data:`CHECK_PART` in its order (N,),
-    take () bool, the bias taken (3,))."""
+    of this sample; ``vqf_clip`` rad/s; ``bias`` (3,) the filter's. The new values of :data:`CHECK_PART`
+    go to ``writes`` (:class:`~tcn_ahrs.export.graph_state.Writes`). -> (the bias the filter goes on
+    from (3,), the check's bias (3,))."""
     n = s[K.S_CK_N] + 1.0
     fresh = s[K.S_CK_N] < 0.5
     dead = clipped.any() | (frozen[0] ^ frozen[1]) | (~fresh & (s[K.S_CK_DEAD] > 0.5))
@@ -60,7 +61,8 @@ def check_step(s: Tensor, sums_index: Tensor, gyro: Tensor, acc: Tensor, frozen:
     take = (done & (run >= K.CHECK_MIN_WINDOWS) & (torch.abs(b) <= K.CHECK_CLIP * K.DEG).all()
             & ((torch.abs(b - chk) > vqf_clip).any() | (torch.abs(chk).sum() > 0.0)))
     zero = torch.zeros_like(n)
-    values = torch.cat([torch.where(take, b, chk), torch.stack([torch.where(done, zero, n), t, dead.to(F64)]),
-                        torch.stack([ref, sums, squares], 1).reshape(-1), floor,
-                        torch.stack([run, count_run]), g, up])
-    return values, take, b
+    chk = torch.where(take, b, chk)
+    writes.add(CHECK_PART, torch.cat([chk, torch.stack([torch.where(done, zero, n), t, dead.to(F64)]),
+                                      torch.stack([ref, sums, squares], 1).reshape(-1), floor,
+                                      torch.stack([run, count_run]), g, up]))
+    return torch.where(take, b, bias), chk

@@ -83,8 +83,7 @@ def search_main(cfg) -> Dict[str, Any]:
     lighter = skipped(settings, len(folds))
     print("search settings: " + ("; ".join(lighter) if lighter else "the full search (nothing skipped)"), flush=True)
     seeds = [int(seed) for seed in sc.seeds]
-    # two trainings per recipe and fold (cross-fitted: learn.CrossFitted), and the release
-    budget = Budget(sc.get("budget_minutes"), 2 * len(learn) * len(idx) + (1 if learn else 0), len(idx))
+    budget = Budget(sc.get("budget_minutes"), 2 * len(learn) * len(idx) + (1 if learn else 0), len(idx))  # cross-fitted: 2 each
     print(budget.describe(len(learn)), flush=True)
     t_start = time.perf_counter()
     job = multirun_job()
