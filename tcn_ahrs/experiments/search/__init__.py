@@ -283,7 +283,7 @@ def release_learned(cfg, result: Dict[str, Any], out: Path, name: str, rec: Dict
 
     with (budget.training() if budget is not None else nullcontext(None)) as minutes:
         best = train_recipe(recipe, out / "learn" / "release" / recipe, train, val, data_overrides(cfg.data, axes),
-                            axes, minutes, lodo_runs=_lodo_runs(cfg.search))
+                            axes, minutes, lodo_runs=_lodo_runs(cfg.get("search") or {}))
     path = out / "release.ckpt"
     tmp = path.with_name(path.name + ".partial")
     shutil.copyfile(best, tmp)
