@@ -344,7 +344,7 @@ def calibration_notes(agree: dict, mag_fit: Optional[dict], declared) -> List[st
         notes.append(f"field 'gyro': a constant bias of {np.round(np.degrees(bias), 1).tolist()} °/s against the "
                      f"ground truth, beyond the {np.degrees(GYRO_BIAS_CLIP):g} °/s the filters estimate in motion (VQF's "
                      f"clip): declare gyr_bias: {b} (rad/s, subtracted), or let `tcn-ahrs search` fit it (its "
-                     "gyro_bias calibration); the device check subtracts it only where the recording rests")
+                     "gyro_bias calibration); the default's causal check takes it only from the recording's rests")
     if mag_fit is not None and mag_fit["offset"] is not None and "mag_hard_iron" not in declared:
         h, field = mag_fit["offset"], float(np.linalg.norm(mag_fit["field"]))
         if np.linalg.norm(h) > 0.5 * field and mag_fit["identity"] < 0.3 * mag_fit["identity_no_offset"]:

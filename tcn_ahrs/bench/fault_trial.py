@@ -163,6 +163,7 @@ CASES: Dict[str, tuple] = {
     "gyro bias 5 °/s": ("slow", _add("gyr", np.radians([5.0, 5.0, 5.0])), "broad9_residual", [], None),
     "accelerometer bias 0.5 m/s²": ("slow", _add("acc", [0.5, 0.5, 0.5]), "broad9_residual", [], None),
     "soft iron (a 1.3 / 0.8 / 1.1 scale, 0.2 cross-coupling)": ("slow", _soft_iron, "broad9_residual", [], None),
+    "gyro bias 5 °/s, the default (no ckpt=)": ("slow", _add("gyr", np.radians([5.0, 5.0, 5.0])), None, [], None),
     "all-zero magnetometer, the default (no ckpt=)": ("slow", _zero_mag, None, [], None),
     "a 2-sample recording, the default": ("slow", _two_samples, None, [], None),
     # the phone (iPhone 4S held for texting, 100 Hz): the default, as a phone user runs it
