@@ -27,6 +27,7 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .kernels.backbone_layout import CHECK_NOISE_FACTOR, CHECK_TILT_DEG, CHECK_WINDOW
 from .sequence import ImuSequence
 
 
@@ -34,11 +35,13 @@ from .sequence import ImuSequence
 class DeviceCheckConfig:
     """The check's settings (meaning, unit, default)."""
 
-    window_s: float = 0.5          # s, one window of the statistics
-    floor_percentile: float = 2.0  # %, the quietest windows' spread taken as the noise floor
-    noise_factor: float = 2.5      # a quiet window's spread is within this × the noise floor
-    min_rest_s: float = 2.0        # s of consecutive quiet windows that make a rest
-    max_tilt_deg: float = 0.3      # °, how far the specific force may turn within a rest
+    # the window, the quiet factor and the tilt are the causal check's (kernels/backbone_layout.py:
+    # CHECK_*); its rest is 1.5 s, its floor the quietest window so far (this one's a percentile)
+    window_s: float = CHECK_WINDOW           # s, one window of the statistics
+    floor_percentile: float = 2.0            # %, the quietest windows' spread taken as the noise floor
+    noise_factor: float = CHECK_NOISE_FACTOR  # a quiet window's spread is within this × the noise floor
+    min_rest_s: float = 2.0                  # s of consecutive quiet windows that make a rest
+    max_tilt_deg: float = CHECK_TILT_DEG     # °, how far the specific force may turn within a rest
     field_spread: float = 0.1      # relative spread (robust) of the field norm a 9-axis heading tolerates
     dip_spread_deg: float = 5.0    # °, the same for the field's dip
 

@@ -154,8 +154,8 @@ def _recordings(cfg: DictConfig, general_model: bool = False):
 
     refused: list = []
     seqs = [s for s in load_split(cfg.data, str(cfg.data.split), refused) if s.has_gt]
-    mode = {"true": "offline"}.get(str(cfg.get("device_check", _D.device_check)).lower(),
-                                   str(cfg.get("device_check", _D.device_check)).lower())
+    mode = str(cfg.get("device_check", _D.device_check)).lower()
+    mode = "offline" if mode == "true" else mode   # the old name
     if mode not in ("auto", "offline", "false"):
         raise ValueError(f"device_check: expected auto, offline or false, got {mode!r}")
     if mode == "offline" or (mode == "auto" and general_model):

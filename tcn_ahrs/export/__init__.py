@@ -211,7 +211,7 @@ def export_main(cfg) -> Dict[str, Path]:
     if not cfg.ckpt or not cfg.out:
         raise ValueError("export: pass ckpt=PATH (a checkpoint written by tcn-ahrs train, or default6 / default9: "
                          "what tcn-ahrs evaluate runs without ckpt=) and out=FILE.pt")
-    if str(cfg.ckpt) in ("default",):
+    if str(cfg.ckpt) == "default":
         raise ValueError("export: ckpt=default: name the axes, ckpt=default6 or ckpt=default9")
     from .default import DEFAULTS, write_default_checkpoint
 

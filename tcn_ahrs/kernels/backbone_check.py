@@ -73,10 +73,9 @@ def check_window(s, p, n, done):
     u2 = s[S_CK_AREF + 2] + s[S_CK_AS + 2] / n
     inv = 1.0 / sqrt(u0 * u0 + u1 * u1 + u2 * u2 + 1e-300)
     u0, u1, u2 = u0 * inv, u1 * inv, u2 * inv
-    live = s[S_CK_DEAD] < 0.5
+    live = both(s[S_CK_DEAD] < 0.5, done)
     gfl, afl = s[S_CK_FLOOR], s[S_CK_FLOOR + 1]
     first = gfl < 0.0
-    live = both(live, done)
     gfl = where(live, where(either(first, gsp < gfl), gsp, gfl), gfl)
     afl = where(live, where(either(first, asp < afl), asp, afl), afl)
     s[S_CK_FLOOR], s[S_CK_FLOOR + 1] = gfl, afl

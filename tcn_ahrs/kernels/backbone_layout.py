@@ -71,7 +71,7 @@ class BackboneParams:
     # the causal device check (not in VQF; 0: off, VQF's filter): the gyro bias read from the past's
     # rests, judged by the signal's character (windows whose spread is within CHECK_NOISE_FACTOR x the
     # quietest window so far, for CHECK_MIN_WINDOWS windows at a steady tilt), not by VQF's 2 °/s clip;
-    # VQF's own bias estimate then runs within bias_clip of it (kernels/backbone.py: rest_check)
+    # VQF's own bias estimate then runs within bias_clip of it (kernels/backbone_check.py: rest_check)
     rest_check: float = knob(0.0, "flag", "the causal device check: the gyro bias at rest from the past, "
                              "beyond bias_clip; 0: off")
 
@@ -160,8 +160,8 @@ S_CK_GREF, S_CK_GS, S_CK_GQ = _S["check_gyr_ref"], _S["check_gyr_sum"], _S["chec
 S_CK_AREF, S_CK_AS, S_CK_AQ = _S["check_acc_ref"], _S["check_acc_sum"], _S["check_acc_sq"]
 S_CK_FLOOR, S_CK_RUN, S_CK_RUN_N = _S["check_floor"], _S["check_run"], _S["check_run_count"]
 S_CK_RUN_G, S_CK_RUN_UP = _S["check_run_gyr"], _S["check_run_up"]
-# the causal device check's settings, shared with the offline one (tcn_ahrs.device_check.DeviceCheckConfig
-# reads its defaults from here): one window, the quiet window's spread against the noise floor (the
+# the causal device check's settings (tcn_ahrs.device_check.DeviceCheckConfig, the offline check, reads
+# its window, quiet factor and tilt from here): one window, the quiet window's spread against the noise floor (the
 # quietest window so far), the windows in a row that make a rest, how far the specific force may turn
 # within it, and the largest bias it takes (a rest reading more is a steady turn, not a bias: consumer
 # MEMS gyros are specified to a few °/s; EuRoC's ADIS16448 reads 4.7 °/s, the iPhone 5 5.5 °/s)

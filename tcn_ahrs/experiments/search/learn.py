@@ -175,7 +175,8 @@ class CrossFitted:
     training recordings, its epoch and inference knobs chosen once on each half of the validation
     recordings (:func:`halves`); each validation recording is run by the model the *other* half chose
     (so the adoption test, :func:`gain_supported`, reads no recording that tuned what it tests), any
-    other recording (the outer fold's) by the first. Otherwise the estimator it wraps."""
+    other recording (the outer fold's) by the first. With one validation recording there is one model
+    (and nothing to adopt: :data:`MIN_ADOPTION_RECORDINGS`). Otherwise the estimator it wraps."""
 
     def __init__(self, by_recording: Dict[str, Any], outer, name: str):
         self.by_recording, self.outer, self.name = dict(by_recording), outer, name
