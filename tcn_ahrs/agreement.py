@@ -208,31 +208,6 @@ def axis_fit(w_gyro: np.ndarray, w_gt: np.ndarray, min_rate: float, excited: flo
     return out
 
 
-def hard_iron_fit(mag: np.ndarray) -> dict:
-    """The magnetometer's constant offset (hard iron) from the field's norm alone, no ground truth:
-    least squares of |m − h|² = r² over the recording (a sphere through the readings). ``offset``
-    (3,) µT, ``radius`` µT, ``spread_before`` / ``spread_after``: the norm's relative spread
-    (std / mean) of the raw readings and with the offset removed, ``coverage``: the smallest
-    spread of the readings' directions over an axis (0: one direction only; the offset along an
-    axis the recording never turns about is not identifiable), all None below 30 samples."""
-    m = np.asarray(mag, dtype=np.float64)
-    out = {"offset": None, "radius": None, "spread_before": None, "spread_after": None, "coverage": 0.0}
-    ok = np.linalg.norm(m, axis=1) > 0
-    m = m[ok]
-    if len(m) < 30:
-        return out
-    # |m|² = 2 m·h + (r² − |h|²): linear in (h, c)
-    sol = np.linalg.lstsq(np.column_stack([2.0 * m, np.ones(len(m))]), (m * m).sum(1), rcond=None)[0]
-    h = sol[:3]
-    r = float(np.sqrt(max(sol[3] + h @ h, 0.0)))
-    n0, n1 = np.linalg.norm(m, axis=1), np.linalg.norm(m - h, axis=1)
-    u = (m - h) / np.maximum(n1, 1e-12)[:, None]
-    out.update(offset=h, radius=r, spread_before=float(n0.std() / max(n0.mean(), 1e-12)),
-               spread_after=float(n1.std() / max(n1.mean(), 1e-12)),
-               coverage=float(np.sqrt(max(np.linalg.eigvalsh(np.cov(u.T))[0], 0.0))))
-    return out
-
-
 def signed_permutations():
     """The 48 signed permutation matrices W (3, 3) — every way three axes can be wired, swapped or
     negated — each with its key (W as a tuple of int tuples)."""
@@ -279,25 +254,6 @@ def mag_wiring_fit(mag: np.ndarray, quat: np.ndarray, valid: np.ndarray, step: O
     return out
 
 
-def judged_hard_iron(mag: np.ndarray) -> Optional[tuple]:
-    """A magnetometer's constant offset (hard iron: a magnet or steel on the device, an uncalibrated
-    sensor) found from the field's norm alone (:func:`hard_iron_fit`): ``(offset (3,) µT, what was
-    found in words)``, or None. Judged where the recording turns about every axis, the offset is
-    large against the field (> 30 % of it) and removing it makes the norm constant (its spread
-    halved, and below 5 %) — a field that moves with the body is a disturbance the filters reject,
-    an offset is not (BROAD's attached magnets: their spread does not fall; its translation trials
-    turn too little to fit a sphere: the spread grows)."""
-    fit = hard_iron_fit(mag)
-    if fit["offset"] is None or fit["coverage"] < 0.1:
-        return None
-    h, r = fit["offset"], fit["radius"]
-    if not (fit["spread_after"] < min(0.05, 0.5 * fit["spread_before"]) and float(np.linalg.norm(h)) > 0.3 * r):
-        return None
-    hx = [round(float(v), 1) for v in h]
-    return h, (f"a constant offset of {hx} uT (hard iron: the field's norm varies by {100 * fit['spread_before']:.0f} %, "
-               f"by {100 * fit['spread_after']:.0f} % with it removed; field {r:.1f} uT)")
-
-
 def static_accel_problem(acc: np.ndarray, expected: np.ndarray, gyro: np.ndarray) -> Optional[str]:
     """The accelerometer's axes against the gravity the ground truth predicts, on the still samples
     (norm within 5 % of g, turning slower than 0.5 rad/s: little motion besides gravity), or None.
@@ -317,42 +273,6 @@ def static_accel_problem(acc: np.ndarray, expected: np.ndarray, gyro: np.ndarray
     return (f"axes wired differently from the ground truth's body frame: on its {int(still.sum())} still samples the "
             f"gravity it predicts is read as acc = {[[int(x) for x in r] for r in best]} body ({rms[best]:.2f} m/s² RMS; as wired "
             f"{given:.2f}): fix the accelerometer's columns")
-
-
-GYRO_BIAS_CLIP = np.radians(2.0)
-"""rad/s: the largest gyro bias VQF's defaults (and the backbone's, the default) estimate in motion."""
-
-
-def calibration_notes(agree: dict, mag_fit: Optional[dict], declared) -> List[str]:
-    """Calibration faults the ground truth shows, each with its size and the fix (warnings: the
-    recording is usable, the filter will do worse than it could):
-
-    * a gyro bias beyond what the filter estimates in motion (:data:`GYRO_BIAS_CLIP`): the median
-      of gyro minus ground-truth rate over the recording (the iPhone 5: (+5.4, −0.9, +0.7) °/s, EuRoC's
-      MAV: (−0.1, +1.2, +4.4) °/s; BROAD, TUM VI, OxIOD, iPhone 4S: under 1 °/s);
-    * a magnetometer offset (hard iron) fixed in the body: the offset of ``mag_fit``
-      (:func:`mag_wiring_fit`, None without a magnetometer: a constant field in the navigation frame) where it is larger than half the field and
-      explains most of the residual (as wired, with the offset: under 30 % of the residual without
-      it; the 78 real recordings with a magnetometer fit 0.01-1.2 times the field, their residual
-      at least 45 % of the one without; a 150 µT offset on a phone: 3.3 times, 2.5 %).
-    ``declared``: the recording's declarations (a declared ``gyr_bias`` / ``mag_hard_iron`` is not
-    named again)."""
-    notes = []
-    bias = agree.get("gyro_bias")
-    if bias is not None and "gyr_bias" not in declared and np.abs(bias).max() > GYRO_BIAS_CLIP:
-        b = [round(float(v), 4) for v in bias]
-        notes.append(f"field 'gyro': a constant bias of {np.round(np.degrees(bias), 1).tolist()} °/s against the "
-                     f"ground truth, beyond the {np.degrees(GYRO_BIAS_CLIP):g} °/s the filters estimate in motion (VQF's "
-                     f"clip): declare gyr_bias: {b} (rad/s, subtracted), or let `tcn-ahrs search` fit it (its "
-                     "gyro_bias calibration); the default's causal check takes it only from the recording's rests")
-    if mag_fit is not None and mag_fit["offset"] is not None and "mag_hard_iron" not in declared:
-        h, field = mag_fit["offset"], float(np.linalg.norm(mag_fit["field"]))
-        if np.linalg.norm(h) > 0.5 * field and mag_fit["identity"] < 0.3 * mag_fit["identity_no_offset"]:
-            notes.append(f"field 'mag': a constant offset of {np.round(-h, 1).tolist()} uT fixed in the body "
-                         f"(hard iron: {np.linalg.norm(h) / field:.1f} times the {field:.0f} uT field; the field stays "
-                         f"constant to {mag_fit['identity']:.1f} uT with it removed, {mag_fit['identity_no_offset']:.1f} uT "
-                         f"without): declare mag_hard_iron: {np.round(-h, 1).tolist()}")
-    return notes
 
 
 def mag_wiring_problem(fit: dict) -> Optional[str]:

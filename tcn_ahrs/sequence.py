@@ -13,8 +13,9 @@ from typing import Optional
 
 import numpy as np
 
-from .agreement import (EXCITED_RATE, MIN_REPORTED_LAG_S, axis_fit, calibration_notes, evidence_text,  # noqa: F401
-                        ground_truth_agreement, judged_hard_iron, lag_text, mag_wiring_fit, mag_wiring_problem)
+from .agreement import (EXCITED_RATE, MIN_REPORTED_LAG_S, axis_fit, evidence_text,  # noqa: F401
+                        ground_truth_agreement, lag_text, mag_wiring_fit, mag_wiring_problem)
+from .calibration_faults import accel_bias_fit, calibration_notes, judged_hard_iron, soft_iron_fit
 from .conventions import GRAVITY, INPUT_RANGES, MAX_DT, MIN_DT
 
 
@@ -219,7 +220,8 @@ class ImuSequence:
         problem = None if mag_fit is None else mag_wiring_problem(mag_fit)
         if problem:
             self._fail("mag", problem)
-        for note in calibration_notes(agree, mag_fit, self.meta.get("declared") or {}):
+        soft = None if self.mag is None else soft_iron_fit(self.mag, self.quat, self.quat_valid)
+        for note in calibration_notes(agree, mag_fit, self.meta.get("declared") or {}, accel_bias_fit(self), soft):
             warnings.warn(f"{self.source}: {note}", UserWarning, stacklevel=3)
         if agree.get("angle_deg") is not None and agree["angle_deg"] > 45.0:
             self._fail("quat", f"the gyro disagrees with the rate differentiated from the ground truth (median "

@@ -10,7 +10,8 @@ import h5py
 import numpy as np
 import pytest
 
-from tcn_ahrs.agreement import ground_truth_agreement, hard_iron_fit
+from tcn_ahrs.agreement import ground_truth_agreement
+from tcn_ahrs.calibration_faults import hard_iron_fit
 from tcn_ahrs.bench import fault_trial as ft
 from tcn_ahrs.datasets.simulate import simulate
 from tcn_ahrs.filters import backbone as bb

@@ -27,7 +27,7 @@ LAYERS = [
     # where the shipped models lie
     {"conventions", "so3", "validate", "conf", "config", "app", "tum", "checkpoints"},
     # the one recording type, its validation, how an IMU agrees with its ground truth
-    {"sequence", "agreement", ""},
+    {"sequence", "agreement", "calibration_faults", ""},
     {"datasets"},
     # the classical filters (torch reference + numba loops) and the backbone's tensor/numba readings;
     # the static calibration (constant sensor errors fitted once, used by every family) and the

@@ -94,4 +94,6 @@ class GenericDeclarations:
     clock: str = "stamps"              # stamps | nominal (a regular stream with jittered stamps: the grid)
     mag_hard_iron: Optional[List[float]] = None  # µT (3,), subtracted from the magnetometer; null: none
     gyr_bias: Optional[List[float]] = None       # rad/s (3,), subtracted from the gyro; null: none
+    acc_bias: Optional[List[float]] = None       # m/s² (3,), subtracted from the accelerometer; null: none
+    mag_soft_iron: Optional[List[List[float]]] = None  # 3x3 (rows), applied after mag_hard_iron; null: identity
     gt_time_offset: float = 0.0        # s the ground truth's stamps run late against the IMU's (read at t + offset)

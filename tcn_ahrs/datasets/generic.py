@@ -44,6 +44,13 @@ key                   values                                 default
 ``gyr_bias``          the gyro's constant bias [x, y, z]     none
                       rad/s, subtracted (the ground-truth
                       check that finds one prints it)
+``acc_bias``          the accelerometer's constant bias      none
+                      [x, y, z] m/s², subtracted (printed
+                      where the ground truth shows one)
+``mag_soft_iron``     3x3 matrix (rows) applied to the       identity
+                      magnetometer after ``mag_hard_iron``
+                      (printed where the ground truth
+                      shows soft iron)
 ====================  =====================================  ==========
 
 converted here with :mod:`tcn_ahrs.conventions`. A sidecar key not in this table is an error
@@ -163,6 +170,20 @@ def _vector(src: str, attrs: Dict, key: str, unit: str) -> np.ndarray:
         return np.asarray(value, dtype=np.float64).reshape(3)
     except (TypeError, ValueError):
         raise DataError(src, key, f"expected [x, y, z] in {unit}, got {value!r}") from None
+
+
+def _matrix(src: str, attrs: Dict, key: str) -> np.ndarray:
+    """A declared 3x3 matrix ``key`` (rows; the identity when not declared), invertible."""
+    value = attrs.get(key, getattr(_DECL, key))
+    if value is None:
+        return np.eye(3)
+    try:
+        m = np.asarray(value, dtype=np.float64).reshape(3, 3)
+    except (TypeError, ValueError):
+        m = np.zeros((3, 3))
+    if not abs(np.linalg.det(m)) > 1e-6:
+        raise DataError(src, key, f"expected an invertible 3x3 matrix (rows), got {value!r}")
+    return m
 
 
 def check_declarations(src: str, attrs: Dict) -> None:
@@ -314,7 +335,9 @@ def build(path: Path, name: str, a: Dict, attrs: Dict, dataset: str = "generic")
     if a["mag"] is not None:
         mag = _convert(src, "mag_unit", attrs.get("mag_unit", _DECL.mag_unit), _MAG)(check_finite(src, "mag", a["mag"]))
         mag = mag - _vector(src, attrs, "mag_hard_iron", "uT")
+        mag = mag @ _matrix(src, attrs, "mag_soft_iron").T
     gyro = gyro - _vector(src, attrs, "gyr_bias", "rad/s")
+    acc = acc - _vector(src, attrs, "acc_bias", "m/s^2")
     quat = valid = None
     if a["quat"] is not None:
         quat = np.asarray(a["quat"], dtype=np.float64)
