@@ -196,3 +196,36 @@ def test_the_default_estimates_a_gyro_bias_beyond_vqfs_clip_from_the_start_up_re
     e_biased = recording_scores(default(9), [seq(biased)], 9)[0][0]
     e_vqf = recording_scores(build("vqf", 9), [seq(biased)], 9)[0][0]
     assert e_biased <= 2.0 * e_clean < e_vqf, (e_biased, e_clean, e_vqf)
+
+
+_PHONE = _BROAD.parent / "phones" / "iphone4s" / "Guillaume_iPhone4S_NoDist_Texting.h5"
+
+
+@pytest.mark.skipif(not _PHONE.is_file(), reason="phones not in ../shared")
+@pytest.mark.parametrize("sensor", ["acc", "gyr"])
+def test_on_a_phone_a_frozen_sensor_is_flagged_and_the_default_holds(sensor):
+    """The iPhone 4S held for texting (it never rests) with the accelerometer or the gyro frozen 5 s,
+    the default as it runs (raw readings, its causal check): the freeze is flagged; a frozen
+    accelerometer leaves it within twice its clean error, a frozen gyro is held, not integrated
+    (VQF integrates the frozen rate: 13.7° against the default's 4.3°, clean 2.7°)."""
+    from tcn_ahrs.bench import fault_trial as ft
+    from tcn_ahrs.estimators import registry
+    from tcn_ahrs.estimators.families import recording_scores
+    from tcn_ahrs.evaluate.main import default
+    from tcn_ahrs.filters import backbone as bb
+    from tcn_ahrs.sequence import ImuSequence
+
+    def seq(a):
+        return ImuSequence("phone", "phone", a["t"], a["gyr"], a["acc"], a["mag"], a["quat"], check_units=False)
+
+    clean = ft._clip(_BROAD, ft.CLIPS["phone"])
+    frozen = ft._frozen(sensor)({k: v.copy() for k, v in clean.items()})
+    dt = np.diff(frozen["t"], prepend=frozen["t"][0] - 0.01)
+    out = bb.run(frozen["gyr"], frozen["acc"], frozen["mag"], dt, bb.BackboneParams(rest_check=1.0))
+    assert 4.5 < float(dt[out["acc_frozen" if sensor == "acc" else "gyro_frozen"]].sum()) < 5.1
+    e_clean, e_frozen = (recording_scores(default(9), [seq(a)], 9)[0][0] for a in (clean, frozen))
+    if sensor == "acc":
+        assert e_frozen <= 2.0 * e_clean, (e_frozen, e_clean)
+    else:
+        e_vqf = recording_scores(registry.build("vqf", 9), [seq(frozen)], 9)[0][0]
+        assert e_frozen < 0.5 * e_vqf, (e_frozen, e_vqf)

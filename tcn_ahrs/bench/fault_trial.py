@@ -180,6 +180,9 @@ CASES: Dict[str, tuple] = {
     "phone: ground truth in a body frame rotated 10°": ("phone", _gt_rotated, None, [], None),
     # the seventh pass: calibration faults on the phone, held for texting (it barely tilts: an accelerometer
     # bias cannot be told from a mount there) and held up while walking (augmented reality: it turns)
+    "accelerometer frozen 5 s, the default (no ckpt=)": ("slow", _frozen("acc"), None, [], ("inclination", 5.0, 1.0)),
+    "phone: accelerometer frozen 5 s": ("phone", _frozen("acc"), None, [], ("inclination", 5.0, 1.0)),
+    "phone: gyro frozen 5 s": ("phone", _frozen("gyr"), None, [], ("heading", 4.0, 4.0)),
     "phone: accelerometer bias 0.5 m/s²": ("phone", _add("acc", [0.5, 0.5, 0.5]), None, [], None),
     "phone: soft iron": ("phone", _soft_iron, None, [], None),
     "phone held up: clean": ("phone held up", None, None, [], None),
