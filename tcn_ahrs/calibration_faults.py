@@ -184,7 +184,8 @@ def calibration_notes(agree: dict, mag_fit: Optional[dict], declared, accel: Opt
       of gyro minus ground-truth rate over the recording (the iPhone 5: (+5.4, −0.9, +0.7) °/s, EuRoC's
       MAV: (−0.1, +1.2, +4.4) °/s; BROAD, TUM VI, OxIOD, iPhone 4S: under 1 °/s);
     * a magnetometer offset (hard iron) fixed in the body: the offset of ``mag_fit``
-      (:func:`mag_wiring_fit`, None without a magnetometer: a constant field in the navigation frame) where it is larger than half the field and
+      (:func:`mag_wiring_fit`, None without a magnetometer: a constant field in the navigation frame)
+      where it is larger than half the field and
       explains most of the residual (as wired, with the offset: under 30 % of the residual without
       it; the 78 real recordings with a magnetometer fit 0.01-1.2 times the field, their residual
       at least 45 % of the one without; a 150 µT offset on a phone: 3.3 times, 2.5 %).

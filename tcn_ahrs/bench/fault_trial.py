@@ -1,5 +1,6 @@
 """The fault trial: faults a new user's recordings carry, injected into clips of real BROAD
-recordings (training trials) and of a phone (the iPhone 4S held for texting, ../shared/datasets/phones)
+recordings (training trials) and of a phone (the iPhone 4S held for texting and held up while walking,
+../shared/datasets/phones)
 and run through ``tcn-ahrs evaluate`` exactly as a user would run it (generic files, the shipped
 ``broad9`` / ``broad6`` models on BROAD, the default on the phone, VQF and raw integration beside them).
 
@@ -291,7 +292,8 @@ def markdown(result: dict) -> str:
     issue was read at) and now, and VQF now (VQF's code did not change), from ``fault_trial.json``."""
     before = {r["case"]: r for r in (result.get("before") or {}).get("cases", [])}
     lines = ["| fault (BROAD clip, `tcn-ahrs evaluate ckpt=broad9_residual` unless it says the default; phone: the "
-             "iPhone 4S held for texting, the default) | before | now | VQF |", "|---|---|---|---|"]
+             "iPhone 4S held for texting, the default; phone held up: the same phone held up while walking) "
+             "| before | now | VQF |", "|---|---|---|---|"]
     for row in result["cases"]:
         # VQF on the faulty clip (its code is the same before and now; refused now, it ran before)
         ran = row if row.get("aae") else before.get(row["case"]) or {}
