@@ -37,6 +37,31 @@ def hard_iron_fit(mag: np.ndarray) -> dict:
     return out
 
 
+def plane_hard_iron_fit(mag: np.ndarray) -> Optional[dict]:
+    """The magnetometer's offset in the plane a recording turns in, from the field's norm alone: a
+    phone held for texting turns about its z axis only, so the readings trace a circle whose centre
+    (x, y) is the offset there, and the z component stays as recorded (0 here). The plane: the
+    directions along which the readings spread by more than 0.3 × the largest spread (offset-free:
+    the covariance of the raw readings). ``{"offset": (3,) µT, "radius": the norm with it removed µT
+    (median), "spread_before" / "spread_after": the norm's standard deviation µT}``, or None (below 30
+    samples, or fewer than two such directions)."""
+    m = np.asarray(mag, dtype=np.float64)
+    m = m[np.linalg.norm(m, axis=1) > 0]
+    if len(m) < 30:
+        return None
+    w, v = np.linalg.eigh(np.cov(m.T))
+    sd = np.sqrt(np.maximum(w, 0.0))
+    plane = v[:, sd > 0.3 * sd.max()]
+    if plane.shape[1] < 2:
+        return None
+    q = m @ plane    # |q − c|² = r²: linear in (c, r² − |c|²)
+    sol = np.linalg.lstsq(np.column_stack([2.0 * q, np.ones(len(q))]), (q * q).sum(1), rcond=None)[0]
+    h = plane @ sol[:-1]
+    n0, n1 = np.linalg.norm(m, axis=1), np.linalg.norm(m - h, axis=1)
+    return {"offset": h, "radius": float(np.median(n1)), "spread_before": float(n0.std()),
+            "spread_after": float(n1.std())}
+
+
 def judged_hard_iron(mag: np.ndarray) -> Optional[tuple]:
     """A magnetometer's constant offset (hard iron: a magnet or steel on the device, an uncalibrated
     sensor) found from the field's norm alone (:func:`hard_iron_fit`): ``(offset (3,) µT, what was
@@ -44,10 +69,26 @@ def judged_hard_iron(mag: np.ndarray) -> Optional[tuple]:
     large against the field (> 30 % of it) and removing it makes the norm constant (its spread
     halved, and below 5 %) — a field that moves with the body is a disturbance the filters reject,
     an offset is not (BROAD's attached magnets: their spread does not fall; its translation trials
-    turn too little to fit a sphere: the spread grows)."""
+    turn too little to fit a sphere: the spread grows). Where the recording turns about one axis only
+    (a phone held for texting), the offset in the plane it turns in (:func:`plane_hard_iron_fit`) is
+    judged instead: over half the field, and the norm's spread below 0.3 × the raw one. On the 84 real
+    recordings with a magnetometer, whole and as two 45 s clips each (252), none clean fires; with
+    150 µT added on x 87 do (the sphere alone: 51), with (60, −40, 30) µT 99 (61): the iPhone 4S held
+    for texting, as the fault trial's clip, goes from 75.9° to 5.3° with the default (clean 2.7°).
+    """
     fit = hard_iron_fit(mag)
-    if fit["offset"] is None or fit["coverage"] < 0.1:
+    if fit["offset"] is None:
         return None
+    if fit["coverage"] < 0.1:
+        plane = plane_hard_iron_fit(mag)
+        if plane is None:
+            return None
+        h, r = plane["offset"], plane["radius"]
+        if not (plane["spread_after"] < 0.3 * plane["spread_before"] and float(np.linalg.norm(h)) > 0.5 * r):
+            return None
+        return h, (f"a constant offset of {[round(float(v), 1) for v in h]} uT in the plane the recording turns in "
+                   f"(hard iron: the field's norm varies by {plane['spread_before']:.1f} uT, by {plane['spread_after']:.1f} "
+                   f"uT with it removed; field {r:.1f} uT; the axis it never turns about is left as recorded)")
     h, r = fit["offset"], fit["radius"]
     if not (fit["spread_after"] < min(0.05, 0.5 * fit["spread_before"]) and float(np.linalg.norm(h)) > 0.3 * r):
         return None
