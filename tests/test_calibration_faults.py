@@ -130,3 +130,11 @@ def test_hard_iron_on_a_phone_that_turns_about_one_axis_is_removed_at_load():
     assert np.abs(np.median(iron.mag - clean.mag, axis=0)).max() < 10.0   # the clip's own offset: ~5 µT
     e_clean, e_iron = (recording_scores(default(9), [s], 9)[0][0] for s in (clean, iron))
     assert e_iron < 2.5 * e_clean, (e_iron, e_clean)
+
+
+@needs_phones
+def test_a_singular_soft_iron_declaration_is_refused_naming_the_field(tmp_path):
+    from tcn_ahrs.sequence import DataError
+
+    with pytest.raises(DataError, match="mag_soft_iron.*invertible 3x3"):
+        _phone(tmp_path, TEXTING, declare={"mag_soft_iron": np.diag([1.0, 1.0, 0.0])})
