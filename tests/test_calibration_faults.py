@@ -138,3 +138,21 @@ def test_a_singular_soft_iron_declaration_is_refused_naming_the_field(tmp_path):
 
     with pytest.raises(DataError, match="mag_soft_iron.*invertible 3x3"):
         _phone(tmp_path, TEXTING, declare={"mag_soft_iron": np.diag([1.0, 1.0, 0.0])})
+
+
+@needs_phones
+def test_a_phone_with_a_dead_magnetometer_or_two_samples_is_said_not_scored_silently():
+    """The trial's BROAD rows on the phone clip: an all-zero magnetometer loads as a 6-axis recording,
+    said (it was refused as "is it in Gauss?"); a 2-sample recording is refused as too short to score
+    (it was scored)."""
+    from tcn_ahrs.estimators import registry
+    from tcn_ahrs.evaluate.runner import evaluate
+
+    a = ft._clip(ft.SHARED, ft.CLIPS["phone"])
+    with pytest.warns(UserWarning, match="reads 0 on every sample: no magnetometer"):
+        seq = ImuSequence("phone", "phone", a["t"], a["gyr"], a["acc"], np.zeros_like(a["mag"]), a["quat"])
+    assert seq.mag is None and seq.num_axes == 6
+    i = int(np.argmax(seq.quat_valid))   # the phone's ground truth starts a few samples in
+    two = seq.slice(i, i + 2, name="phone_two_samples")
+    with pytest.raises(ValueError, match=r"'phone_two_samples' is too short to score"):
+        evaluate([registry.build("raw", 6)], [two], plots=False, trajectories=False)
