@@ -178,9 +178,9 @@ def accel_bias_note(fit: Optional[dict]) -> Optional[str]:
     """An accelerometer bias (``fit``: :func:`accel_bias_fit`'s) named on the axes the fit reads well
     (standard error ≤ :data:`ACC_BIAS_MAX_SE`) where it exceeds :data:`ACC_BIAS_NAMED` there by three
     standard errors: on the 93 real recordings, whole and as two 45 s clips each (279), none clean is
-    named (the largest: 0.26 over three se); with 0.5 m/s² added to every axis 48 are (BROAD's rotations,
-    phones held up while walking: a device that turns while nearly still); the others turn too little
-    to tell a bias from a mount (a phone held for texting)."""
+    named (the largest clean reading, less three standard errors: 0.26 m/s²); with 0.5 m/s² added to
+    every axis 48 are (BROAD's rotations, phones held up while walking: a device that turns while
+    nearly still); the others turn too little to tell a bias from a mount (a phone held for texting)."""
     if fit is None:
         return None
     b, se = fit["bias"], fit["se"]
