@@ -1,7 +1,8 @@
 """Calibration faults a recording shows: a gyro bias beyond what the filters estimate, an
 accelerometer bias, hard and soft iron — each fitted (against the ground truth where there is one,
 from the field's norm alone for hard iron) and named with its size and the declaration that fixes it
-(warnings when a recording is built: :class:`~tcn_ahrs.sequence.ImuSequence`).
+(warnings when a recording is built: :class:`~tcn_ahrs.sequence.ImuSequence`). How often each fires on
+the project's real recordings, clean and with the fault: ``python scripts/calibration_faults.py``.
 """
 from __future__ import annotations
 
