@@ -179,8 +179,9 @@ CASES: Dict[str, tuple] = {
     "phone: gyro bias 5 °/s": ("phone", _add("gyr", np.radians([5.0, 5.0, 5.0])), None, [], None),
     "phone: hard iron +150 µT": ("phone", _add("mag", [150.0, 0.0, 0.0]), None, [], None),
     "phone: ground truth in a body frame rotated 10°": ("phone", _gt_rotated, None, [], None),
-    # the seventh pass: calibration faults on the phone, held for texting (it barely tilts: an accelerometer
-    # bias cannot be told from a mount there) and held up while walking (augmented reality: it turns)
+    # the seventh pass: the default after a frozen sensor (BROAD, the phone); calibration faults on the phone,
+    # held for texting (it barely tilts: an accelerometer bias cannot be told from a mount there) and held up
+    # while walking (augmented reality: it turns)
     "accelerometer frozen 5 s, the default (no ckpt=)": ("slow", _frozen("acc"), None, [], ("inclination", 5.0, 1.0)),
     "phone: accelerometer frozen 5 s": ("phone", _frozen("acc"), None, [], ("inclination", 5.0, 1.0)),
     "phone: gyro frozen 5 s": ("phone", _frozen("gyr"), None, [], ("heading", 4.0, 4.0)),
